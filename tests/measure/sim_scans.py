@@ -1,0 +1,142 @@
+"""Test-side scan simulator: a true beam on a 4-dof (Schoenflies) robot scanning surfaces.
+
+For a target spot ``P`` on the surface, a true orientation ``Rz(theta)`` and a true reading
+``d0``, the flange is at ``O = P - R (T + d0 u)``; the robot then reports ``O`` and ``theta`` with
+noise and the sensor reports ``d0`` with noise (seed Table 2, ``NoiseModel`` defaults).
+The beam stays within 20 deg of vertical, so every face the tests use is seen from the front
+(no self-occlusion on a convex pyramid).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from calib_core.calibrate import BeamCalibration
+from calib_core.model import SCHOENFLIES_PARAMS, Poses, rotation_about_z
+from calib_core.noise import NoiseModel
+from calib_core.pyramid import PyramidGeometry
+
+#: Beam close to the seed's eq 15: T in the flange frame (true z_t), u' = (a, b, c).
+TRUE_T = np.array([-6.386, 70.055, -15.073])
+TRUE_U = np.array([0.250, -0.181, 0.952])
+#: Calibration plate datum (its z at x = y = 0) and tilt.
+DELTA = 5.0
+PLATE_ALPHA, PLATE_BETA = -0.713e-3, 5.671e-3
+#: 1-sigma of the calibration parameters (x_t, y_t, z_t - delta, a, b, c, alpha, beta).
+CALIB_SIGMA = np.array([0.004, 0.004, 0.012, 3e-4, 3e-4, 2e-4, 2e-5, 2e-5])
+
+
+def true_h() -> np.ndarray:
+    """True Schoenflies ``H = (x_t, y_t, z_t - delta, a, b, c, alpha, beta)``."""
+    return np.array([*TRUE_T[:2], TRUE_T[2] - DELTA, *TRUE_U, PLATE_ALPHA, PLATE_BETA])
+
+
+def calib_covariance(seed: int = 7) -> np.ndarray:
+    """A realistic calibration covariance: ``CALIB_SIGMA`` with random correlations (|rho|<~0.6)."""
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(8, 8))
+    corr = a @ a.T + 8 * np.eye(8)
+    dg = np.sqrt(np.diag(corr))
+    corr = corr / np.outer(dg, dg)
+    return corr * np.outer(CALIB_SIGMA, CALIB_SIGMA)
+
+
+def calibration(rng: np.random.Generator | None = None,
+                cov: np.ndarray | None = None) -> BeamCalibration:
+    """The calibration a solve would give: true ``H`` (or a draw ``N(H, C)`` with ``rng``)."""
+    cov = calib_covariance() if cov is None else cov
+    h = true_h()
+    if rng is not None:
+        h = rng.multivariate_normal(h, cov)
+    return BeamCalibration(model="schoenflies", names=SCHOENFLIES_PARAMS, values=h,
+                           covariance=cov)
+
+
+@dataclass(frozen=True)
+class Scan:
+    poses: Poses
+    d: np.ndarray
+    truth: np.ndarray  # true spot positions (n, 3), robot frame
+
+
+def scan_targets(targets: np.ndarray, rng: np.random.Generator,
+                 noise: NoiseModel | None = None, theta_deg: np.ndarray | None = None,
+                 d0: np.ndarray | None = None) -> Scan:
+    """Reported poses and readings that put the true spot on each target (n, 3)."""
+    noise = noise or NoiseModel()
+    n = len(targets)
+    theta = rng.uniform(-30, 30, n) if theta_deg is None else np.asarray(theta_deg, float)
+    d_true = rng.uniform(-4, 4, n) if d0 is None else np.asarray(d0, float)
+    rot = rotation_about_z(theta)
+    origin = targets - np.einsum("nij,nj->ni", rot, TRUE_T[None] + d_true[:, None] * TRUE_U)
+    pos = origin + rng.normal(size=(n, 3)) * [noise.robot_xy, noise.robot_xy, noise.robot_z]
+    theta_rep = theta + rng.normal(size=n) * noise.robot_theta_deg
+    d_rep = d_true + rng.normal(size=n) * noise.sensor
+    return Scan(Poses(pos, rotation_about_z(theta_rep), theta_rep), d_rep, targets)
+
+
+def plane_targets(alpha: float, beta: float, offset: float, xy: np.ndarray) -> np.ndarray:
+    """Points of ``z = alpha x + beta y + offset`` above ``xy`` (n, 2)."""
+    return np.column_stack([xy, alpha * xy[:, 0] + beta * xy[:, 1] + offset])
+
+
+def grid_xy(x0: float, y0: float, half: float, k: int) -> np.ndarray:
+    gx, gy = np.meshgrid(np.linspace(x0 - half, x0 + half, k), np.linspace(y0 - half, y0 + half, k))
+    return np.column_stack([gx.ravel(), gy.ravel()])
+
+
+def pyramid_targets(geometry: PyramidGeometry, rotation: np.ndarray, apex: np.ndarray,
+                    per_face: int, rng: np.random.Generator, margin: float = 0.3
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Random points on each face (world frame) and their face names.
+
+    A point on face k is ``apex + s e_(k-1) + t e_k`` on the two edges bounding it, inside the
+    face (height above the base > 0) and ``margin`` mm away from the edges.
+    """
+    edges = geometry.edges  # AB, BC, CA: face k lies between edges k-1 (CA/AB/BC) and k
+    pts, labels = [], []
+    for k, name in enumerate(geometry.face_names):
+        e1, e2 = edges[(k - 1) % 3], edges[k]
+        drop = -min(e1[2], e2[2])  # height lost per mm along an edge
+        reach = geometry.height / drop
+        got = 0
+        while got < per_face:
+            s, t = rng.uniform(0, reach, 2)
+            p = s * e1 + t * e2
+            if -p[2] > geometry.height * 0.95:
+                continue
+            if min(_dist_to_line(p, e1), _dist_to_line(p, e2)) < margin:
+                continue
+            pts.append(rotation @ p + apex)
+            labels.append(name)
+            got += 1
+    return np.array(pts), np.array(labels)
+
+
+def _dist_to_line(p: np.ndarray, e: np.ndarray) -> float:
+    return float(np.linalg.norm(p - (p @ e) * e))
+
+
+def random_rotation(rng: np.random.Generator, max_deg: float) -> np.ndarray:
+    """A rotation by up to ``max_deg`` about a random axis."""
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    return Rotation.from_rotvec(np.radians(rng.uniform(0, max_deg)) * axis).as_matrix()
+
+
+def write_scan_csv(path: Path, scan: Scan, **columns: np.ndarray) -> Path:
+    """CSV in the measurement format (x_o, y_o, z_o, theta_deg, d, extra columns)."""
+    assert scan.poses.theta_deg is not None
+    cols = {"x_o": scan.poses.position[:, 0], "y_o": scan.poses.position[:, 1],
+            "z_o": scan.poses.position[:, 2], "theta_deg": scan.poses.theta_deg, "d": scan.d,
+            **columns}
+    lines = ["# simulated scan", ",".join(cols)]
+    for i in range(len(scan.d)):
+        lines.append(",".join(str(v[i]) if isinstance(v[i], str | np.str_) else repr(float(v[i]))
+                              for v in cols.values()))
+    path.write_text("\n".join(lines) + "\n")
+    return path
