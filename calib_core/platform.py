@@ -67,6 +67,10 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from calib_core.errors import InputError
+from calib_core.measure import Calibration
+from calib_core.model import Poses
+from calib_core.noise import NoiseModel
+from calib_core.pyramid import PyramidGeometry
 
 #: Parameter names in vector order (units in the suffix; ``scale_i`` is dimensionless).
 PARAM_NAMES: tuple[str, ...] = (
@@ -476,3 +480,45 @@ def evaluate(params: Mapping[str, float], poses: PoseSet) -> dict[str, object]:
     for key in ("ap_mm", "ap_deg", "rp_mm", "rp_deg"):
         out[key] = max((p[key] for p in iso), default=float("nan"))
     return out
+
+
+def poses_from_scans(config: np.ndarray, q_deg: np.ndarray, measurement: np.ndarray,
+                     flange: Poses, d: np.ndarray, face: np.ndarray, calib: Calibration,
+                     geometry: PyramidGeometry | None = None,
+                     noise: NoiseModel | None = None) -> tuple[PoseSet, tuple[str, ...]]:
+    """One pyramid pose per measurement from scan rows (eq 16 points, three-face fit).
+
+    Rows sharing ``measurement`` (n,) form one scan; each must have a single ``config`` and
+    ``q_deg``. Points ``P = O + R (T + d u')`` with scan-noise and calibration covariance
+    (:func:`calib_core.measure.reconstruct`), pose and covariance by
+    :func:`calib_core.pyramid.measure_pyramid`; the rotation covariance is converted from rad^2
+    to deg^2. The calibration's covariance enters every pose independently (conservative per
+    pose; its correlation across configurations is not modelled). Returns the poses and the
+    pyramid fits' warnings, prefixed by the configuration.
+    """
+    from calib_core.measure import reconstruct
+    from calib_core.pyramid import measure_pyramid
+
+    meas = np.asarray(measurement)
+    keys, first = np.unique(meas, return_index=True)
+    order = np.argsort(first)
+    keys, first = keys[order], first[order]
+    n = len(keys)
+    rot, apex, cov = np.empty((n, 3, 3)), np.empty((n, 3)), np.empty((n, 6, 6))
+    warnings: list[str] = []
+    scale = np.concatenate([np.full(3, np.degrees(1.0)), np.ones(3)])
+    for k, key in enumerate(keys):
+        idx = np.flatnonzero(meas == key)
+        cfg = config[idx]
+        if np.any(cfg != cfg[0]) or np.ptp(q_deg[idx], axis=0).max() > 0:
+            raise InputError(f"measurement {key}: rows disagree on config or q1_deg, q2_deg")
+        try:
+            fit = measure_pyramid(reconstruct(flange.subset(idx), d[idx], calib, noise),
+                                  face[idx], geometry)
+        except InputError as exc:
+            raise InputError(f"configuration {cfg[0]}: {exc}") from None
+        rot[k], apex[k] = fit.rotation, fit.apex
+        cov[k] = fit.pose_cov * np.outer(scale, scale)
+        warnings.extend(f"configuration {cfg[0]}: {w}" for w in fit.warnings)
+    return PoseSet(np.asarray(config)[first], np.asarray(q_deg, float)[first], rot, apex,
+                   cov), tuple(warnings)

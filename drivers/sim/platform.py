@@ -21,8 +21,13 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from calib_core.calibrate import BeamCalibration
 from calib_core.errors import InputError
+from calib_core.model import SCHOENFLIES_PARAMS, rotation_about_z
+from calib_core.noise import NoiseModel
 from calib_core.platform import PoseSet, forward, params_from_mapping
+from calib_core.pyramid import PyramidGeometry, load_geometry
+from drivers.sim.workcell import load_workcell
 
 #: First configuration id of the validation set (identification ids start at 0).
 VALIDATION_ID0 = 1000
@@ -168,3 +173,127 @@ def simulate_campaign(spec: PlatformSpec | None = None, seed: int = 0) -> Platfo
     train = measured_poses(spec.true, tid, tq, spec.noise, rng)
     validation = measured_poses(spec.true, vid, vq, spec.noise, rng)
     return PlatformCampaign(spec, seed, train, validation)
+
+
+# ----------------------------------------------------------------------------- full scans
+
+@dataclass(frozen=True)
+class PyramidScans:
+    """Reported flange poses and readings scanning the pyramid, one block per measurement.
+
+    ``row_pose`` (m,) index of the pose measurement each scan row belongs to; ``position``
+    (m, 3), ``theta_deg`` (m,), ``d`` (m,), ``face`` (m,) face names.
+    """
+
+    row_pose: np.ndarray
+    position: np.ndarray
+    theta_deg: np.ndarray
+    d: np.ndarray
+    face: np.ndarray
+
+
+def face_targets(geometry: PyramidGeometry, per_face: int, rng: np.random.Generator,
+                 margin: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+    """Points on the faces in the pyramid frame (apex at origin) and their face index.
+
+    ``s e_(k-1) + t e_k`` between the edges bounding face ``k``, above 5 % of the height from
+    the base and ``margin`` mm from both edges.
+    """
+    edges = geometry.edges
+    pts, face = [], []
+    for k in range(3):
+        e1, e2 = edges[(k - 1) % 3], edges[k]
+        reach = geometry.height / -min(e1[2], e2[2])
+        got = 0
+        while got < per_face:
+            s, t = rng.uniform(0, reach, 2)
+            p = s * e1 + t * e2
+            dist = min(np.linalg.norm(p - (p @ e) * e) for e in (e1, e2))
+            if -p[2] > 0.95 * geometry.height or dist < margin:
+                continue
+            pts.append(p)
+            face.append(k)
+            got += 1
+    return np.array(pts), np.array(face)
+
+
+def scan_pyramid(rotations: np.ndarray, apexes: np.ndarray, beam_t: np.ndarray,
+                 beam_u: np.ndarray, geometry: PyramidGeometry, noise: NoiseModel,
+                 per_face: int, rng: np.random.Generator) -> PyramidScans:
+    """Scan each true pyramid pose with a 4-dof robot carrying the true beam ``(T, u')``.
+
+    Face ``k`` is scanned with ``theta`` chosen so the beam's horizontal part points against the
+    face's outward normal (seen from the front; a convex body cannot hide a front face point).
+    For a target ``P`` and true reading ``d``: ``O = P - Rz(theta) (T + d u')``; the robot
+    reports ``O`` and ``theta`` and the sensor ``d`` with the ``noise`` sigmas (seed Table 2).
+    """
+    blocks = []
+    phi_u = np.degrees(np.arctan2(beam_u[1], beam_u[0]))
+    for i, (rot, apex) in enumerate(zip(rotations, apexes, strict=True)):
+        local, face = face_targets(geometry, per_face, rng)
+        target = local @ rot.T + apex
+        normal = geometry.normals[face] @ rot.T
+        theta = np.degrees(np.arctan2(normal[:, 1], normal[:, 0])) + 180.0 - phi_u
+        theta = (theta + 180.0) % 360.0 - 180.0
+        d = rng.uniform(-3.0, 3.0, len(target))
+        r = rotation_about_z(theta)
+        origin = target - np.einsum("nij,nj->ni", r, beam_t[None] + d[:, None] * beam_u[None])
+        blocks.append((np.full(len(target), i), origin, theta, d, face))
+    row, origin, theta, d, face = (np.concatenate(x) for x in zip(*blocks, strict=True))
+    m = len(d)
+    origin = origin + rng.normal(size=(m, 3)) * [noise.robot_xy, noise.robot_xy, noise.robot_z]
+    theta = theta + rng.normal(size=m) * noise.robot_theta_deg
+    d = d + rng.normal(size=m) * noise.sensor
+    return PyramidScans(row, origin, theta, d, np.array(geometry.face_names)[face])
+
+
+def simulated_beam_calibration() -> BeamCalibration:
+    """The beam of the default workcell as a Schoenflies calibration (plate datum delta = 0).
+
+    Values are the true ones; the covariance is a realistic diagonal one (4 um on x_t, y_t,
+    12 um on z_t - delta, 2-3e-4 on a, b, c, 2e-5 on the plate tilt).
+    """
+    beam = load_workcell().beam
+    h = np.array([beam.x_t, beam.y_t, beam.z_t, *beam.u_prime, 0.0, 0.0])
+    sig = np.array([0.004, 0.004, 0.012, 3e-4, 3e-4, 2e-4, 2e-5, 2e-5])
+    return BeamCalibration(model="schoenflies", names=SCHOENFLIES_PARAMS, values=h,
+                           covariance=np.diag(sig**2))
+
+
+@dataclass(frozen=True)
+class ScanSet:
+    """Commanded configurations (``config``, ``q_deg`` per measurement) and their scans."""
+
+    config: np.ndarray
+    q_deg: np.ndarray
+    scans: PyramidScans
+
+
+@dataclass(frozen=True)
+class ScanCampaign:
+    """A simulated campaign measured by scanning: beam calibration, identification, validation."""
+
+    spec: PlatformSpec
+    seed: int
+    calibration: BeamCalibration
+    train: ScanSet
+    validation: ScanSet
+
+
+def simulate_scan_campaign(spec: PlatformSpec | None = None, seed: int = 0, per_face: int = 8,
+                           noise: NoiseModel | None = None) -> ScanCampaign:
+    """The design of ``spec`` measured by scanning the pyramid's faces (``per_face`` points each)
+    with the workcell's true beam; the returned calibration is the one the scans are read with."""
+    spec = load_spec() if spec is None else spec
+    noise = noise or NoiseModel()
+    rng = np.random.default_rng(seed)
+    calib = simulated_beam_calibration()
+    geometry = load_geometry()
+    tid, tq, vid, vq = design(spec, rng)
+    sets = []
+    for cid, q in ((tid, tq), (vid, vq)):
+        rot, apex = true_poses(spec.true, q, spec.noise.joint_deg, rng)
+        scans = scan_pyramid(rot, apex, calib.values[0:3], calib.values[3:6], geometry, noise,
+                             per_face, rng)
+        sets.append(ScanSet(cid, q, scans))
+    return ScanCampaign(spec, seed, calib, sets[0], sets[1])
