@@ -22,6 +22,7 @@ import numpy as np
 from calib_core.errors import InputError
 from calib_core.model import Poses, spot_jacobian, spot_positions
 from calib_core.noise import NoiseModel
+from calib_core.stats import axis_statistics
 
 #: |n_z| of a fitted plane below which ``z = alpha x + beta y + offset`` is flagged as steep.
 STEEP_NZ = 0.3
@@ -311,3 +312,128 @@ def fit_plane(xyz: np.ndarray, method: str = "ls", noise_cov: np.ndarray | None 
 def fit_scan_plane(scan: ScanPoints, method: str = "ls") -> PlaneFit:
     """:func:`fit_plane` on reconstructed points with both uncertainty parts."""
     return fit_plane(scan.xyz, method, scan.noise_cov, scan.jac, scan.param_cov)
+
+
+def compare_with_camera(scan_xyz: np.ndarray, spot_xy: np.ndarray, fit: PlaneFit
+                        ) -> dict[str, object]:
+    """Seed Tables 3-4: the plane from camera-derived points ``(x_p, y_p, z_scan)`` against the
+    scanner's, and per-axis point errors ``x - x_p``, ``y - y_p``, ``z - z_cam(x_p, y_p)``
+    (``z_cam`` the camera plane), each as mean-abs / RMS / max (mm)."""
+    spot_xy = np.asarray(spot_xy, dtype=float)
+    cam = fit_plane(np.column_stack([spot_xy, scan_xyz[:, 2]]), fit.method)
+    errors = np.column_stack([scan_xyz[:, 0:2] - spot_xy, scan_xyz[:, 2] - cam.z_at(spot_xy)])
+    return {
+        "camera_plane": {"alpha": cam.alpha, "beta": cam.beta, "offset": cam.offset},
+        "difference": {"alpha": fit.alpha - cam.alpha, "beta": fit.beta - cam.beta,
+                       "offset": fit.offset - cam.offset},
+        "point_errors": axis_statistics(errors),
+    }
+
+
+# ----------------------------------------------------------------------------- gauges
+
+@dataclass(frozen=True)
+class GaugeCheck:
+    """Johansson gauge check: slope ``c`` of the gauge heights against the readings.
+
+    ``c_sigma`` includes scan noise and the calibration covariance (through the plate-tilt
+    correction); ``agreement_sigmas = |c - c_calibrated| / sigma(c - c_calibrated)`` with the
+    correlation through the calibration taken into account.
+    """
+
+    c: float
+    c_sigma: float
+    intercept: float
+    n_readings: int
+    residual_rms: float
+    chi2_reduced: float
+    c_calibrated: float | None
+    c_calibrated_sigma: float | None
+    agreement_sigmas: float | None
+    residuals: np.ndarray = field(repr=False)
+    warnings: tuple[str, ...] = ()
+
+    def to_json_dict(self) -> dict[str, object]:
+        return {
+            "c": self.c, "c_sigma": self.c_sigma, "intercept": self.intercept,
+            "n_readings": self.n_readings, "residual_rms": self.residual_rms,
+            "chi2_reduced": self.chi2_reduced, "c_calibrated": self.c_calibrated,
+            "c_calibrated_sigma": self.c_calibrated_sigma,
+            "agreement_sigmas": self.agreement_sigmas, "warnings": list(self.warnings),
+        }
+
+
+def _gauge_line(poses: Poses, d: np.ndarray, heights: np.ndarray, values: np.ndarray | None
+                ) -> tuple[float, float, np.ndarray]:
+    """LS line ``w = c d + b``, ``w = h - z_o + alpha x_P + beta y_P`` (no tilt term without
+    a calibration); returns ``c``, ``b`` and residuals."""
+    w = heights - poses.position[:, 2]
+    if values is not None:
+        xy = spot_positions(poses, d, values[0:3], values[3:6])[:, 0:2]
+        w = w + values[6] * xy[:, 0] + values[7] * xy[:, 1]
+    a = np.column_stack([d, np.ones_like(d)])
+    (c, b), *_ = np.linalg.lstsq(a, w, rcond=None)
+    return float(c), float(b), w - a @ np.array([c, b])
+
+
+def gauge_check(poses: Poses, d: np.ndarray, heights: np.ndarray,
+                calib: Calibration | None = None, noise: NoiseModel | None = None) -> GaugeCheck:
+    """Estimate ``c`` from gauge blocks of known height ``h`` on the calibration plate.
+
+    The spot on a gauge top satisfies ``h = z_o + R[2,:] T + (R[2,:] u') d - delta
+    - alpha x_P - beta y_P``, so with a common flange tilt the least-squares slope of
+    ``w = h - z_o + alpha x_P + beta y_P`` against ``d`` is the beam's vertical component
+    ``R[2,:] u'`` (= ``c`` for a Schoenflies robot). Noise per reading
+    ``sigma_w^2 = sigma_z^2 + (c sigma_d)^2 + sigma_gauge^2``;
+    ``sigma_c^2 = k sigma_w^2 / sum (d - mean d)^2 + g^T C_H g`` with ``g = dc/dH`` (numeric)
+    and ``k = max(1, chi2_reduced)``.
+    """
+    noise = noise or NoiseModel()
+    d = np.asarray(d, dtype=float)
+    heights = np.asarray(heights, dtype=float)
+    n = len(d)
+    if n < 3:
+        raise InputError(f"too few gauge readings: {n}, at least 3 needed")
+    if not np.all(np.isfinite(heights)):
+        raise InputError("gauge heights must be finite")
+    spread = float(np.sum((d - d.mean()) ** 2))
+    if np.sqrt(spread / n) < 10 * noise.sensor or np.ptp(heights) == 0:
+        raise InputError("gauge heights (and readings d) must differ: the slope is not defined")
+    rz = poses.rotation[:, 2, :]
+    if np.max(np.abs(rz - rz[0])) > 1e-6:
+        raise InputError("gauge readings must share the flange tilt (rotations about z only)")
+    warnings: list[str] = []
+    values = None if calib is None else np.asarray(calib.values, dtype=float)
+    c, b, resid = _gauge_line(poses, d, heights, values)
+    var_w = noise.robot_z**2 + (c * noise.sensor) ** 2 + GAUGE_SIGMA**2
+    dof = n - 2
+    chi2 = float(np.sum(resid**2) / var_w / dof) if dof > 0 else 1.0
+    if dof > 0 and chi2 > 1.0 + 4.0 * np.sqrt(2.0 / dof):
+        warnings.append(f"gauge residuals exceed the noise model (chi2/dof = {chi2:.2f}); "
+                        "sigma scaled up (gauge not under the spot, or dirt?)")
+    var_c = max(1.0, chi2) * var_w / spread
+    c_cal = c_cal_sigma = agreement = None
+    if calib is None:
+        warnings.append("no calibration given: plate tilt not corrected, no comparison")
+    else:
+        assert values is not None
+        cov_h = np.asarray(calib.covariance, dtype=float)
+        g = np.zeros(len(values))
+        for k in range(len(values)):
+            step = max(np.sqrt(max(cov_h[k, k], 0.0)), 1e-9)
+            hi, lo = values.copy(), values.copy()
+            hi[k] += step
+            lo[k] -= step
+            g[k] = (_gauge_line(poses, d, heights, hi)[0]
+                    - _gauge_line(poses, d, heights, lo)[0]) / (2 * step)
+        g_cal = np.zeros(len(values))
+        g_cal[3:6] = rz[0]
+        c_cal = float(rz[0] @ values[3:6])
+        c_cal_sigma = float(np.sqrt(g_cal @ cov_h @ g_cal))
+        var_diff = var_c + (g - g_cal) @ cov_h @ (g - g_cal)
+        agreement = float(abs(c - c_cal) / np.sqrt(var_diff))
+        var_c += g @ cov_h @ g
+    return GaugeCheck(c=c, c_sigma=float(np.sqrt(var_c)), intercept=b, n_readings=n,
+                      residual_rms=float(np.sqrt(np.mean(resid**2))), chi2_reduced=chi2,
+                      c_calibrated=c_cal, c_calibrated_sigma=c_cal_sigma,
+                      agreement_sigmas=agreement, residuals=resid, warnings=tuple(warnings))

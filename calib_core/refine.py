@@ -59,10 +59,17 @@ def whiten(cov: np.ndarray, regressor: np.ndarray, observation: np.ndarray
 
 def weighted_least_squares(a_w: np.ndarray, s_w: np.ndarray, h0: np.ndarray,
                            loss: str = "linear", f_scale: float = 1.0) -> np.ndarray:
-    """Minimise ``sum rho(|A_w H - S_w|^2)`` with ``scipy.optimize.least_squares``."""
+    """Minimise ``sum rho(|A_w H - S_w|^2)``.
+
+    The residual is linear in ``H``: for the quadratic loss the minimiser is the least-squares
+    solution (``numpy.linalg.lstsq``); a robust loss (e.g. 'soft_l1') is minimised by
+    ``scipy.optimize.least_squares`` (iteratively reweighted trust region).
+    """
     p = a_w.shape[2]
     a2 = a_w.reshape(-1, p)
     s2 = s_w.reshape(-1)
+    if loss == "linear":
+        return np.linalg.lstsq(a2, s2, rcond=None)[0]
     result = least_squares(lambda h: a2 @ h - s2, h0, jac=lambda h: a2, loss=loss,
                            f_scale=f_scale, method="trf", x_scale="jac", xtol=1e-12,
                            ftol=1e-12, gtol=1e-12)
@@ -88,7 +95,7 @@ def variance_factor_update(regressor: np.ndarray, observation: np.ndarray, h: np
         quad = np.einsum("ni,nij,nj->", wr, v, wr)
         redundancy = np.einsum("nij,nji->", w, v) - np.trace(
             n_inv @ np.einsum("nip,nij,njq->pq", wa, v, wa))
-        value = quad / redundancy if redundancy > 1e-9 else k
+        value = k * quad / redundancy if redundancy > 1e-9 else k
         new.append(float(np.clip(value, *VARIANCE_FACTOR_LIMITS)))
     return new[0], new[1]
 
