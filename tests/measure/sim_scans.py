@@ -140,3 +140,35 @@ def write_scan_csv(path: Path, scan: Scan, **columns: np.ndarray) -> Path:
                               for v in cols.values()))
     path.write_text("\n".join(lines) + "\n")
     return path
+
+
+def gauge_readings(heights: np.ndarray, spots_xy: np.ndarray, rng: np.random.Generator,
+                   noise: NoiseModel | None = None, theta_deg: float = 10.0, d0: float = -4.0
+                   ) -> Scan:
+    """Gauge blocks of ``heights`` on the calibration plate under a flange held at each of
+    ``spots_xy`` (the spot there on the bare plate reads ``d0``); every height at every spot.
+
+    The robot is commanded (and reports) the same pose; the true pose scatters by its
+    repeatability; the true reading follows from the beam meeting the gauge top
+    ``z = alpha x + beta y + delta + h``: ``d = (delta + h - m . (O + R T)) / (m . R u)``,
+    ``m = (-alpha, -beta, 1)``.
+    """
+    noise = noise or NoiseModel()
+    rot = rotation_about_z(np.array([theta_deg]))[0]
+    m = np.array([-PLATE_ALPHA, -PLATE_BETA, 1.0])
+    pos, d, truth = [], [], []
+    for xy in spots_xy:
+        p0 = np.array([xy[0], xy[1], PLATE_ALPHA * xy[0] + PLATE_BETA * xy[1] + DELTA])
+        origin = p0 - rot @ (TRUE_T + d0 * TRUE_U)
+        for h in heights:
+            o_true = origin + rng.normal(size=3) * [noise.robot_xy, noise.robot_xy,
+                                                     noise.robot_z]
+            start = o_true + rot @ TRUE_T
+            d_true = (DELTA + h - m @ start) / (m @ (rot @ TRUE_U))
+            pos.append(origin)
+            d.append(d_true + rng.normal() * noise.sensor)
+            truth.append(start + d_true * rot @ TRUE_U)
+    n = len(d)
+    theta = np.full(n, theta_deg)
+    return Scan(Poses(np.array(pos), rotation_about_z(theta), theta), np.array(d),
+                np.array(truth))
