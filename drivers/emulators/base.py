@@ -70,6 +70,7 @@ class PtyEmulator:
         self.lock = threading.RLock()
         self._faults: list[Fault] = []
         self._log: list[tuple[float, str]] = []
+        self._raw = bytearray()
         self.errors: list[str] = []  # tracebacks of handler failures (tests assert it is empty)
         self._scheduled: list[tuple[float, bytes]] = []
         self._partial = bytearray()
@@ -178,6 +179,12 @@ class PtyEmulator:
             return [text for _, text in self._log]
 
     @property
+    def received_bytes(self) -> bytes:
+        """Every byte received, exactly as sent by the driver."""
+        with self.lock:
+            return bytes(self._raw)
+
+    @property
     def log(self) -> list[tuple[float, str]]:
         """``(time.monotonic(), text)`` for every line and real-time byte received."""
         with self.lock:
@@ -221,6 +228,7 @@ class PtyEmulator:
 
     # -- thread ----------------------------------------------------------------------------
     def _feed(self, data: bytes) -> None:
+        self._raw += data
         for byte in data:
             if byte in self.realtime:
                 self._log.append((time.monotonic(), chr(byte)))
