@@ -1,0 +1,285 @@
+"""Acquisition runner and the acquire/export commands against the simulated workcell."""
+
+from __future__ import annotations
+
+import io
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from app.acquisition import Progress, Runner, RunnerConfig
+from app.session import Session, read_session_frame
+from calib_core.calibrate import solve
+from calib_core.grid import make_grid, paper_grid
+from calib_core.io import dataset_from_frame, load_dataset
+from drivers.base import (
+    DriverError,
+    FlangePose,
+    ReadingStatus,
+    SensorReading,
+    SpotMeasurement,
+)
+from drivers.sim.devices import SimCameraDirect, SimRobot, SimSensor
+from drivers.sim.workcell import load_workcell
+from drivers.sim.world import SimWorld
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _devices(seed: int = 0):
+    world = SimWorld(load_workcell(), seed=seed)
+    return world, SimRobot(world), SimSensor(world), SimCameraDirect(world)
+
+
+def test_simulated_session_recovers_the_workcell_truth(tmp_path: Path) -> None:
+    world, robot, sensor, camera = _devices(seed=0)
+    seen: list[Progress] = []
+    with Session.create(tmp_path / "s.db", paper_grid()) as session:
+        result = Runner(session, robot, sensor, camera, RunnerConfig(samples_per_pose=3),
+                        on_progress=seen.append).run()
+    assert (result.state, result.done, result.total, result.skipped) == ("finished", 42, 42, 0)
+    done = [p.done for p in seen if p.state == "running" and p.current is not None]
+    assert done == list(range(1, 43))
+    assert all(p.eta_s is not None and p.last is not None for p in seen[2:])
+    frame = read_session_frame(tmp_path / "s.db")
+    assert frame["pose_index"].tolist() == list(range(42))
+    # the stored pose is the robot's read-back: commanded + repeatability (robot_xy 2.5 um)
+    dx = frame[["x_o", "y_o"]].to_numpy() - paper_grid().poses[:, :2]
+    assert 0.5e-3 < dx.std() < 5e-3
+    cal = solve(dataset_from_frame(frame, "s.db")).to_json_dict()
+    truth = world.truth()
+    assert cal["model"] == "schoenflies" and cal["n_used"] == 42
+    for name, value in cal["params"].items():
+        assert abs(value - truth[name]) < 3 * cal["sigma"][name], name
+
+
+class FlakySensor:
+    """Out-of-range at the poses in ``bad``; once invalid (then fine) at the poses in ``once``."""
+
+    def __init__(self, inner: SimSensor, robot: SimRobot, bad: set[int], once: set[int],
+                 grid) -> None:
+        self.inner, self.robot, self.bad, self.once, self.grid = inner, robot, bad, once, grid
+        self.reads = 0
+
+    def _pose_index(self) -> int:
+        p = self.robot.world.true_pose.as_array()
+        return int(np.argmin(np.abs(self.grid.poses - p).sum(axis=1)))
+
+    def read(self) -> SensorReading:
+        self.reads += 1
+        i = self._pose_index()
+        if i in self.bad:
+            return SensorReading(ReadingStatus.OUT_OF_RANGE, raw="+99.999")
+        if i in self.once:
+            self.once.discard(i)
+            return SensorReading(ReadingStatus.INVALID, raw="+EE.EEE")
+        return self.inner.read()
+
+    def zero(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def test_invalid_readings_are_retried_then_skipped_with_reason(tmp_path: Path) -> None:
+    grid = paper_grid()
+    _, robot, sensor, camera = _devices()
+    flaky = FlakySensor(sensor, robot, bad={3}, once={7}, grid=grid)
+    with Session.create(tmp_path / "s.db", grid) as session:
+        result = Runner(session, robot, flaky, camera,
+                        RunnerConfig(samples_per_pose=2, max_retries=2)).run()
+        samples = {s.pose_index: s for s in session.samples()}
+    assert (result.done, result.skipped) == (42, 1)
+    assert samples[3].status == "skipped" and samples[3].d is None
+    assert samples[3].reason == "sensor out-of-range (+99.999) (3 attempt(s))"
+    assert samples[7].ok and samples[7].attempts == 2 and samples[7].n_readings == 2
+    assert len(read_session_frame(tmp_path / "s.db")) == 41
+
+
+class NoSpotCamera(SimCameraDirect):
+    def measure_spot(self) -> SpotMeasurement:
+        return SpotMeasurement(False, reason="no spot in the camera's view")
+
+
+def test_no_spot_skips(tmp_path: Path) -> None:
+    world, robot, sensor, _ = _devices()
+    grid = make_grid([20], [0], [0, 1])
+    with Session.create(tmp_path / "s.db", grid) as session:
+        Runner(session, robot, sensor, NoSpotCamera(world), RunnerConfig(max_retries=1)).run()
+        assert [s.reason for s in session.samples()] == [
+            "camera: no spot in the camera's view (2 attempt(s))"] * 2
+
+
+class FailingRobot(SimRobot):
+    """Raises DriverError on every move while ``broken`` is set."""
+
+    def __init__(self, world: SimWorld) -> None:
+        super().__init__(world)
+        self.broken = threading.Event()
+        self.moves = 0
+
+    def move_to(self, target: FlangePose) -> FlangePose:
+        self.moves += 1
+        if self.broken.is_set():
+            raise DriverError("robot: serial port /dev/ttyUSB0 vanished")
+        return super().move_to(target)
+
+
+def test_driver_error_pauses_then_resume_continues(tmp_path: Path) -> None:
+    world, _, sensor, camera = _devices()
+    robot = FailingRobot(world)
+
+    def on_progress(p: Progress) -> None:
+        if p.done == 10 and p.state == "running":
+            robot.broken.set()
+
+    with Session.create(tmp_path / "s.db", paper_grid()) as session:
+        runner = Runner(session, robot, sensor, camera,
+                        RunnerConfig(samples_per_pose=1, driver_retries=2,
+                                     driver_retry_delay_s=0.0, return_on_pause=True),
+                        on_progress=on_progress)
+        result = runner.run()
+        assert result.state == "paused" and result.done == 10
+        assert result.message == ("pose 10: robot: serial port /dev/ttyUSB0 vanished; "
+                                  "fix the device, then resume")
+        assert robot.moves == 10 + 3  # the failing pose was tried 1 + 2 times
+        assert ("driver-error", "pose 10: robot: serial port /dev/ttyUSB0 vanished") in [
+            e[1:] for e in session.events()]
+        # reconnect (a new robot object) and continue
+        runner.set_devices(robot=SimRobot(world))
+        runner.resume()
+        result = runner.run()
+        assert (result.state, result.done) == ("finished", 42)
+        assert sorted(s.pose_index for s in session.samples()) == list(range(42))
+
+
+def test_pause_blocks_until_resume_and_abort_drops_nothing_stored(tmp_path: Path) -> None:
+    _, robot, sensor, camera = _devices()
+    states: list[str] = []
+    with Session.create(tmp_path / "s.db", paper_grid()) as session:
+        runner: Runner
+
+        def on_progress(p: Progress) -> None:
+            states.append(p.state)
+            if p.done == 5 and p.state == "running":
+                runner.pause()
+                threading.Timer(0.2, runner.resume).start()
+            if p.done == 20 and p.state == "running":
+                runner.abort()
+
+        runner = Runner(session, robot, sensor, camera, RunnerConfig(samples_per_pose=1),
+                        on_progress=on_progress)
+        t0 = time.monotonic()
+        result = runner.run()
+        assert time.monotonic() - t0 >= 0.2
+        assert "paused" in states and (result.state, result.done) == ("aborted", 20)
+        assert session.pending_indices() == list(range(20, 42))
+        result = Runner(session, robot, sensor, camera).run()  # a later run resumes
+        assert (result.state, result.done) == ("finished", 42)
+
+
+def test_robot_not_at_target_is_a_driver_error(tmp_path: Path) -> None:
+    world, _, sensor, camera = _devices()
+
+    class Lazy(SimRobot):  # reports Idle before the pose is reached
+        def move_to(self, target: FlangePose) -> FlangePose:
+            super().move_to(target)
+            return replace(target, x=target.x + 0.5)
+
+    with Session.create(tmp_path / "s.db", make_grid([20], [0], [0])) as session:
+        result = Runner(session, Lazy(world), sensor, camera,
+                        RunnerConfig(driver_retries=0, return_on_pause=True)).run()
+    assert result.state == "paused" and "not at the target" in result.message
+    assert result.done == 0
+
+
+# ---- the commands, as subprocesses -------------------------------------------------------
+def _lasercal(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "app", *args], cwd=ROOT, capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def test_acquire_export_and_refusals(tmp_path: Path) -> None:
+    db, out = tmp_path / "s.db", tmp_path / "s.csv"
+    r = _lasercal("acquire", "--session", str(db), "--sim-camera", "direct", "--samples", "2")
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.startswith(f"session {db}: 42/42 poses stored")
+    assert "[##############################] 42/42" in r.stderr
+    r = _lasercal("acquire", "--session", str(db))
+    assert r.returncode == 2
+    assert r.stderr == (f"error: {db}: session file already exists; continue it with "
+                        "--resume or choose another file\n")
+    r = _lasercal("acquire", "--session", str(db), "--resume")  # nothing left to do
+    assert r.returncode == 0 and "42/42 poses stored" in r.stdout
+    r = _lasercal("export", str(db), "--csv", str(out))
+    assert r.returncode == 0, r.stderr
+    exported = load_dataset(out)  # the solve format
+    frame = read_session_frame(db)
+    np.testing.assert_allclose(exported.d, frame["d"], rtol=1e-8)
+    assert exported.extra["pose_index"].astype(int).tolist() == list(range(42))
+    with Session.open(db, readonly=True) as s:
+        assert s.meta_json("settings")["samples_per_pose"] == 2
+        assert s.meta_json("noise")["camera"] == 0.0031
+        assert "SimRobot" in s.meta_json("drivers")["robot"]
+        assert "[beam]" in s.meta["workcell"]
+    r = _lasercal("acquire", "--session", str(tmp_path / "x.db"), "--robot-port", "/dev/null")
+    assert r.returncode == 2 and "needs --sensor-port, --camera too" in r.stderr
+    assert not (tmp_path / "x.db").exists()
+    r = _lasercal("acquire", "--session", str(tmp_path / "x.db"), "--preview")
+    assert r.returncode == 0 and len(r.stdout.splitlines()) == 44
+    r = _lasercal("export", str(tmp_path / "none.db"), "--csv", str(out))
+    assert r.returncode == 2 and r.stderr.startswith("error: ") and "no such" in r.stderr
+
+
+def test_sigkill_mid_session_then_resume_loses_and_duplicates_nothing(tmp_path: Path) -> None:
+    db = tmp_path / "k.db"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "app", "acquire", "--sim", "--session", str(db), "--settle",
+         "0.05", "--sim-camera", "direct", "--seed", "3"],
+        cwd=ROOT, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    assert proc.stderr is not None
+    try:
+        for line in proc.stderr:  # one line per stored pose (stderr is not a terminal)
+            if line.startswith("[") and " 15/42 " in line:
+                break
+        else:
+            pytest.fail("acquire ended before 15 poses")
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == -signal.SIGKILL
+    assert Path(f"{db}-wal").exists()  # killed: nothing was checkpointed on close
+    with Session.open(db, readonly=True) as s:
+        before = {x.pose_index: x for x in s.samples()}
+    assert 15 <= len(before) < 42
+    assert sorted(before) == list(range(len(before)))
+
+    r = _lasercal("acquire", "--sim", "--session", str(db), "--resume", "--sim-camera",
+                  "direct")
+    assert r.returncode == 0, r.stderr
+    con = sqlite3.connect(db)
+    assert con.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+    indices = [row[0] for row in con.execute("SELECT pose_index FROM samples")]
+    con.close()
+    assert len(indices) == 42 and sorted(indices) == list(range(42))
+    with Session.open(db, readonly=True) as s:
+        after = {x.pose_index: x for x in s.samples()}
+        assert [e[1] for e in s.events()].count("resume") == 1
+    for i, sample in before.items():
+        assert after[i] == sample  # unchanged, same timestamp
+    assert min(after[i].timestamp for i in after if i not in before) > max(
+        x.timestamp for x in before.values())
+    frame = pd.read_csv(io.StringIO(_lasercal("export", str(db), "--csv", "-").stdout),
+                        comment="#")
+    assert len(frame) == 42
