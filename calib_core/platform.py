@@ -391,10 +391,6 @@ def identify(poses: PoseSet, nominal: Mapping[str, float], joint_sigma_deg: floa
     n = len(poses)
     if n < 4:
         raise InputError(f"platform calibration needs at least 4 pose measurements, got {n}")
-    q_span = np.ptp(poses.q_deg, axis=0)
-    if np.any(q_span < 1e-6):
-        raise InputError("platform calibration needs configurations with different q1 and q2 "
-                         f"(spans {q_span[0]:g}, {q_span[1]:g} deg)")
     unknown = sorted(set(fixed) - set(PARAM_NAMES))
     if unknown:
         raise InputError(f"unknown parameter(s) to fix: {', '.join(unknown)}")
