@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from calib_core.errors import LasercalError
 
 #: Sub-command modules, in the order ``--help`` lists them.
-COMMANDS: tuple[str, ...] = ("solve", "acquire", "export")
+COMMANDS: tuple[str, ...] = ("solve", "serve", "acquire", "export", "platform", "measure", "sensor", "robot", "emulate")
 
 
 class ArgumentParser(argparse.ArgumentParser):
