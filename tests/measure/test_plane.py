@@ -111,7 +111,7 @@ def test_camera_comparison_like_tables_3_4() -> None:
     cmp = compare_with_camera(pts.xyz, spot_xy, fit)
     err = cmp["point_errors"]
     for axis in ("x", "y"):
-        assert 0.7 * cam_sigma < err[axis]["rms"] < 1.5 * cam_sigma, err
+        assert 0.7 * cam_sigma < err[axis]["rms"] < 2.0 * cam_sigma, err  # + robot 12 um
         assert err[axis]["mean_abs"] <= err[axis]["rms"] <= err[axis]["max"]
     assert err["z"]["rms"] < 0.01
     diff = cmp["difference"]
