@@ -445,7 +445,8 @@ def evaluate(params: Mapping[str, float], poses: PoseSet) -> dict[str, object]:
     - ``RP_l = mean(l_j) + 3 S_l`` with ``l_j = |apex_j - mean(apex)|`` and ``S_l`` its
       standard deviation (n - 1); ``RP_o = max over axes of 3 S`` of the ``e_j`` components.
 
-    ``ap_*``/``rp_*`` are the worst over those configurations; ``iso_poses`` lists each.
+    ``ap_*``/``rp_*`` are the worst over those configurations (None without repeated visits);
+    ``iso_poses`` lists each.
     """
     r, a = forward(params, poses.q_deg)
     err = pose_error(poses.rotation, poses.apex, r, a)
@@ -474,7 +475,7 @@ def evaluate(params: Mapping[str, float], poses: PoseSet) -> dict[str, object]:
         })
     out["iso_poses"] = iso
     for key in ("ap_mm", "ap_deg", "rp_mm", "rp_deg"):
-        out[key] = max((p[key] for p in iso), default=float("nan"))
+        out[key] = max((p[key] for p in iso), default=None)
     return out
 
 

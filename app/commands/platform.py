@@ -58,10 +58,17 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Identify the platform parameters from DIR/train.csv and "
                                    "report pose errors on DIR/validation.csv before (nominal) "
                                    "and after calibration.")
-    c.add_argument("dir", metavar="DIR", help="campaign directory with manifest.json")
+    c.add_argument("dir", metavar="DIR",
+                   help="campaign directory: train.csv, validation.csv and optionally "
+                        "manifest.json (written by simulate)")
+    c.add_argument("--calib", metavar="H.json",
+                   help="beam calibration for scan files (default: the manifest's, else "
+                        "DIR/calibration.json)")
+    c.add_argument("--nominal", metavar="PLATFORM.toml",
+                   help="nominal parameters ([nominal]) and joint repeatability ([noise] "
+                        "joint_deg) when DIR has no manifest (default: packaged file)")
     c.add_argument("--json", action="store_true", help="print exactly one JSON object")
     c.set_defaults(func=run_calibrate)
-    p.set_defaults(func=lambda a: p.error("choose an action: simulate or calibrate"))
 
 
 # ----------------------------------------------------------------------------- files
@@ -252,8 +259,34 @@ def run_simulate(args: argparse.Namespace) -> int:
 
 # ----------------------------------------------------------------------------- calibrate
 
-def load_campaign(directory: str) -> dict[str, Any]:
-    """Manifest, identification and validation pose sets of a campaign directory."""
+def _manifest(root: Path, nominal_toml: str | None) -> dict[str, Any]:
+    """The manifest of ``root``, or one built from the default file names and ``nominal_toml``."""
+    from calib_core.errors import InputError
+    from drivers.sim.platform import load_spec
+
+    if (root / MANIFEST).exists():
+        man = _read_json(root / MANIFEST)
+        if not isinstance(man, dict) or man.get("format") != FORMAT:
+            raise InputError(f"{root / MANIFEST}: not a platform campaign manifest "
+                             f"(expected format {FORMAT!r})")
+        if nominal_toml is None:
+            return man
+    else:
+        man = {"format": FORMAT, "train": "train.csv", "validation": "validation.csv"}
+    spec = load_spec(nominal_toml)
+    man = {**man, "nominal": spec.nominal, "joint_sigma_deg": spec.noise.joint_deg}
+    if "mode" not in man:
+        from calib_core.io import read_table
+
+        path = root / str(man["train"])
+        man["mode"] = "scans" if "face" in read_table(path).columns else "poses"
+        man["calibration"] = "calibration.json"
+    return man
+
+
+def load_campaign(directory: str, calib_file: str | None = None,
+                  nominal_toml: str | None = None) -> dict[str, Any]:
+    """Nominal parameters, identification and validation pose sets of a campaign directory."""
     from calib_core.calibrate import BeamCalibration
     from calib_core.errors import InputError
     from calib_core.platform import params_from_mapping
@@ -261,10 +294,7 @@ def load_campaign(directory: str) -> dict[str, Any]:
     root = Path(directory)
     if not root.is_dir():
         raise InputError(f"{root}: not a campaign directory")
-    man = _read_json(root / MANIFEST)
-    if not isinstance(man, dict) or man.get("format") != FORMAT:
-        raise InputError(f"{root / MANIFEST}: not a platform campaign manifest "
-                         f"(expected format {FORMAT!r})")
+    man = _manifest(root, nominal_toml)
     mode = man.get("mode")
     if mode not in ("poses", "scans"):
         raise InputError(f"{root / MANIFEST}: mode must be 'poses' or 'scans'")
@@ -279,9 +309,10 @@ def load_campaign(directory: str) -> dict[str, Any]:
     sets = {}
     calib = None
     if mode == "scans":
-        if not man.get("calibration"):
-            raise InputError(f"{root / MANIFEST}: scans need a beam calibration file")
-        calib_path = root / str(man["calibration"])
+        name = calib_file or man.get("calibration")
+        if not name:
+            raise InputError(f"{root}: scans need a beam calibration (--calib H.json)")
+        calib_path = Path(calib_file) if calib_file else root / str(name)
         calib = BeamCalibration.from_json_dict(_read_json(calib_path), str(calib_path))
     for key in ("train", "validation"):
         if not man.get(key):
@@ -296,11 +327,12 @@ def load_campaign(directory: str) -> dict[str, Any]:
             "train": sets["train"], "validation": sets["validation"], "warnings": warnings}
 
 
-def calibrate_campaign(directory: str) -> dict[str, Any]:
+def calibrate_campaign(directory: str, calib_file: str | None = None,
+                       nominal_toml: str | None = None) -> dict[str, Any]:
     """The ``platform calibrate --json`` object for a campaign directory."""
     from calib_core.platform import evaluate, identify
 
-    camp = load_campaign(directory)
+    camp = load_campaign(directory, calib_file, nominal_toml)
     cal = identify(camp["train"], camp["nominal"], camp["joint_sigma_deg"])
     return {
         "mode": camp["mode"],
@@ -317,7 +349,7 @@ def calibrate_campaign(directory: str) -> dict[str, Any]:
 
 
 def run_calibrate(args: argparse.Namespace) -> int:
-    result = calibrate_campaign(args.dir)
+    result = calibrate_campaign(args.dir, args.calib, args.nominal)
     if args.json:
         json.dump(result, sys.stdout)
         sys.stdout.write("\n")
@@ -349,7 +381,11 @@ def format_report(r: dict[str, Any], source: str) -> str:
             ("AP orientation (deg)", "ap_deg"), ("RP position (mm)", "rp_mm"),
             ("RP orientation (deg)", "rp_deg"))
     for label, key in rows:
-        lines.append(f"  {label:<28} {r['before'][key]:>10.5f} {r['after'][key]:>10.5f}")
+        b, a = r["before"][key], r["after"][key]
+        if b is None:
+            lines.append(f"  {label:<28} {'n/a (no repeated visits)':>21}")
+        else:
+            lines.append(f"  {label:<28} {b:>10.5f} {a:>10.5f}")
     if r["warnings"]:
         lines += ["", "warnings:"] + [f"  {w}" for w in r["warnings"]]
     return "\n".join(lines) + "\n"

@@ -170,6 +170,13 @@ def test_cli_simulate_calibrate_round_trip(mode: str, tmp_path: Path,
     assert a["orientation_rms_deg"] < b["orientation_rms_deg"] / factor
     code, out, err = _cli(["platform", "calibrate", str(out_dir)], capsys)
     assert code == 0 and "orientation RMS (deg)" in out and "not identifiable" in out
+    # real campaigns need no manifest: nominal from the packaged file, mode from the columns
+    (out_dir / "manifest.json").unlink()
+    code, out, err = _cli(["platform", "calibrate", str(out_dir), "--json"], capsys)
+    assert code == 0, err
+    again = json.loads(out)
+    assert again["mode"] == mode
+    assert again["params"] == pytest.approx(res["params"], abs=1e-9)
 
 
 def test_cli_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
