@@ -265,6 +265,9 @@ def fit_plane(xyz: np.ndarray, method: str = "ls", noise_cov: np.ndarray | None 
         var_dir = res_dir
         resid = resid_v * nrm[2]  # orthogonal distance
         dof_resid = resid_v
+        if abs(nrm[2]) < STEEP_NZ:
+            warnings.append(f"steep plane (|n_z| = {abs(nrm[2]):.2f}): vertical least squares "
+                            "is poorly suited; use the orthogonal fit")
     elif method == "orthogonal":
         nrm, h, dn, dh = orthogonal_plane(xyz)
         if abs(nrm[2]) < STEEP_NZ:

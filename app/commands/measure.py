@@ -201,10 +201,10 @@ def run_pyramid(args: argparse.Namespace) -> int:
     out["z_reference"] = _z_reference(calib)
     lines = [f"lasercal measure pyramid: {args.scan} ({pose.n_points} points)",
              f"z reference: {out['z_reference']}", "",
-             "                  x            y            z",
+             "                  x            y            z       (rotation vector in deg)",
              "  apex [mm]   {:+11.4f}  {:+11.4f}  {:+11.4f}".format(*pose.apex),
              "  +- 1-sigma  {:11.4f}  {:11.4f}  {:11.4f}".format(*pose.apex_sigma),
-             "  rotvec [deg]{:+11.4f}  {:+11.4f}  {:+11.4f}".format(*pose.rotvec_deg),
+             "  rot. vector {:+11.4f}  {:+11.4f}  {:+11.4f}".format(*pose.rotvec_deg),
              "  +- 1-sigma  {:11.4f}  {:11.4f}  {:11.4f}".format(*pose.rotation_sigma_deg),
              "  quaternion (w, x, y, z) ({:+.6f}, {:+.6f}, {:+.6f}, {:+.6f})".format(
                  *pose.quaternion), ""]

@@ -100,6 +100,8 @@ def test_steep_plane_orthogonal_fit() -> None:
     assert np.all(np.abs(np.mean(z, axis=0)) < 0.35), np.mean(z, axis=0)
     vertical = fit_plane(np.column_stack([xy[:, 0], np.zeros(len(xy)), xy[:, 1]]), "orthogonal")
     assert any("steep" in w for w in vertical.warnings)
+    steep_ls = fit_plane(sim.plane_targets(np.tan(np.radians(80.0)), 0.0, 0.0, xy), "ls")
+    assert any("orthogonal fit" in w for w in steep_ls.warnings)
     np.testing.assert_allclose(np.abs(vertical.normal), [0, 1, 0], atol=1e-12)
 
 
