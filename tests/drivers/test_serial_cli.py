@@ -1,0 +1,108 @@
+"""``lasercal sensor|robot|emulate`` as subprocesses against pty emulators."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from drivers.base import FlangePose
+from drivers.emulators import KeyenceEmulator
+from drivers.grbl import GrblRobot
+from drivers.keyence_il import KeyenceIL
+from tests.drivers.conftest import LIMITS, TIMEOUT
+
+
+def lasercal(*argv: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "app", *argv], capture_output=True, text=True,
+                          timeout=60)
+
+
+def test_sensor_read_value_out_of_range_invalid(keyence, physics):
+    physics.value = 1.234
+    out = lasercal("sensor", "read", "--port", keyence.path, "--timeout", "0.2")
+    assert (out.returncode, out.stdout, out.stderr) == (0, "1.234\n", "")
+    physics.value = None
+    out = lasercal("sensor", "read", "--port", keyence.path)
+    assert (out.returncode, out.stdout) == (0, "out-of-range\n")
+    keyence.inject("amp_error", count=-1)
+    out = lasercal("sensor", "read", "--port", keyence.path)
+    assert (out.returncode, out.stdout) == (0, "invalid\n")
+    assert "amplifier error" in out.stderr
+    assert keyence.received == ["SR,00,037"] * 3
+
+
+def test_sensor_errors_exit_2(keyence):
+    keyence.inject("silent", count=-1)
+    out = lasercal("sensor", "read", "--port", keyence.path, "--timeout", "0.2")
+    assert out.returncode == 2 and out.stdout == ""
+    assert out.stderr.startswith("error: Keyence DL-RS1A on ") and "did not answer" in out.stderr
+    keyence.clear_faults()
+    out = lasercal("sensor", "read", "--port", keyence.path, "--id", "3")
+    assert out.returncode == 2 and "ER 65 no amplifier with this ID" in out.stderr
+    assert len(out.stderr.splitlines()) == 1
+
+
+def test_sensor_zero(keyence, physics):
+    physics.value = 7.0
+    out = lasercal("sensor", "zero", "--port", keyence.path)
+    assert (out.returncode, out.stdout) == (0, "zeroed\n")
+    assert keyence.offsets[0] == pytest.approx(7.0)
+
+
+def test_robot_move_pose_and_refusal(grbl, tmp_path):
+    out = lasercal("robot", "move", "--port", grbl.path, "--x", "10", "--y", "-5.5", "--z", "20",
+                   "--theta", "30", "--timeout", "0.5")
+    assert (out.returncode, out.stdout) == (0, "x=10.000 y=-5.500 z=20.000 theta=30.000\n")
+    workcell = tmp_path / "cell.toml"
+    workcell.write_text("[limits]\nx = [-10.0, 10.0]\ny = [-10.0, 10.0]\nz = [0.0, 30.0]\n"
+                        "theta_deg = [-45.0, 45.0]\nmax_step = 5.0\n")
+    before = grbl.received_bytes
+    out = lasercal("robot", "move", "--port", grbl.path, "--workcell", str(workcell),
+                   "--x", "11", "--y", "0", "--z", "20", "--theta", "0")
+    assert out.returncode == 2
+    assert out.stderr == ("error: target x=11 is outside the soft limits [-10, 10]; nothing "
+                          "was sent to the robot\n")
+    assert grbl.received_bytes == before  # the refused target never reached the controller
+    out = lasercal("robot", "pose", "--port", grbl.path)
+    assert (out.returncode, out.stdout) == (0, "x=10.000 y=-5.500 z=20.000 theta=30.000\n")
+
+
+def test_robot_alarm_is_an_error_line(grbl):
+    grbl.inject("alarm", code=1, match="G4")
+    out = lasercal("robot", "move", "--port", grbl.path, "--x", "1", "--y", "1", "--z", "1",
+                   "--theta", "0")
+    assert out.returncode == 2
+    assert "ALARM:1 hard limit triggered" in out.stderr and len(out.stderr.splitlines()) == 1
+    assert lasercal("robot", "unlock", "--port", grbl.path).stdout == "unlocked\n"
+
+
+@pytest.mark.parametrize("device", ["keyence", "grbl"])
+def test_emulate_prints_path_and_serves_until_sigterm(device):
+    argv = [sys.executable, "-m", "app", "emulate", device]
+    argv += ["--value", "2.5"] if device == "keyence" else ["--move-time", "0.05"]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        path = proc.stdout.readline().strip()
+        assert path.startswith("/dev/")
+        if device == "keyence":
+            with KeyenceIL(path, timeout=TIMEOUT) as sensor:
+                assert sensor.read().value == pytest.approx(2.5)
+        else:
+            with GrblRobot(path, LIMITS, timeout=TIMEOUT) as robot:
+                pose = robot.move_to(FlangePose(1.0, 2.0, 3.0, 4.0))
+                assert pose.as_array() == pytest.approx([1.0, 2.0, 3.0, 4.0])
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(10) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_emulator_in_process_is_not_left_behind():
+    emu = KeyenceEmulator(lambda: 0.0).start()
+    emu.close()
+    assert emu.gone and not emu._thread.is_alive()
