@@ -11,7 +11,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import stats as sps
+from scipy.special import fdtri
 
 from calib_core.errors import DesignError, InputError
 from calib_core.io import Dataset
@@ -123,7 +123,7 @@ class BeamCalibration:
     def point_covariance(self, poses: Poses, d: np.ndarray) -> np.ndarray:
         """Covariance (N, 3, 3) of eq-16 points from the covariance of ``H``: ``J C_H J^T``."""
         jac = spot_jacobian(poses, d)
-        return np.einsum("nij,jk,nlk->nil", jac, self.covariance[0:6, 0:6], jac)
+        return (jac @ self.covariance[0:6, 0:6]) @ jac.transpose(0, 2, 1)
 
     def to_json_dict(self) -> dict[str, object]:
         """The ``lasercal solve --json`` object (also the calibration file)."""
@@ -245,17 +245,18 @@ def _fit(data: Dataset, model: str, noise: NoiseModel, robust: bool
         n = len(data)
         # per-pose chi-square (3 dof) against a MAD-estimated scale: an F(3, nu) test, with
         # nu ~ 0.37 x the residuals behind the scale (the MAD's efficiency)
-        threshold = 3.0 * sps.f.isf(OUTLIER_FALSE_ALARM / n, 3, 0.37 * 3 * n)
+        threshold = 3.0 * fdtri(3, 0.37 * 3 * n, 1.0 - OUTLIER_FALSE_ALARM / n)
         for _ in range(5):
             idx = np.flatnonzero(inliers)
             sub = poses.subset(idx)
             pre = maximum_likelihood_fit(sub, d[idx], spot[idx], reg[idx], obs[idx], h0, model,
-                                         noise, estimate_variance=False, factors=factors)
+                                         noise, estimate_variance=False, factors=factors,
+                                         max_iterations=2)
             factors = robust_variance_factors(data, pre.h, model, noise, inliers)
             pre = maximum_likelihood_fit(sub, d[idx], spot[idx], reg[idx], obs[idx], pre.h,
                                          model, noise, loss="soft_l1", f_scale=ROBUST_F_SCALE,
                                          estimate_variance=False, factors=factors,
-                                         max_iterations=3)
+                                         max_iterations=1)
             h0 = pre.h
             factors = robust_variance_factors(data, h0, model, noise, inliers)
             a_all, s_all = whiten(residual_covariance(poses, d, spot, h0, model, noise, factors),

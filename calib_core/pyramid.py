@@ -235,7 +235,7 @@ def pyramid_pose(points: np.ndarray, face_labels: Sequence[object] | np.ndarray,
 
     m0 = world_normals(np.zeros(6))
     if point_cov is not None:
-        sig = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", m0, point_cov, m0), 1e-30))
+        sig = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", m0, point_cov, m0), 1e-18))
     else:
         sig = np.ones(len(pts))
 

@@ -20,6 +20,8 @@ from calib_core.noise import NoiseModel, residual_covariance_components
 
 #: Floor added to each residual covariance (mm^2) so a noise-free source cannot make it singular.
 COVARIANCE_FLOOR = 1e-14
+#: Relative change of the variance factors at which the iteration stops (0.5 % in sigma).
+FACTOR_RTOL = 1e-2
 #: Variance factors are kept within this range of the noise model.
 VARIANCE_FACTOR_LIMITS = (1e-4, 1e4)
 
@@ -118,8 +120,8 @@ def maximum_likelihood_fit(poses: Poses, d: np.ndarray, spot_xy: np.ndarray,
         if estimate_variance:
             new_factors = variance_factor_update(regressor, observation, h_new, comps, factors)
         a2 = a_w.reshape(-1, a_w.shape[2])
-        settled = (np.linalg.norm(a2 @ (h_new - h)) < 1e-6
-                   and np.allclose(new_factors, factors, rtol=1e-3))
+        settled = (np.linalg.norm(a2 @ (h_new - h)) < 1e-3
+                   and np.allclose(new_factors, factors, rtol=FACTOR_RTOL))
         h, factors = h_new, new_factors
         if settled:
             break

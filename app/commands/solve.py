@@ -6,8 +6,12 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from calib_core.calibrate import BeamCalibration
+if TYPE_CHECKING:
+    from calib_core.calibrate import BeamCalibration
+    from calib_core.io import Dataset
+    from calib_core.noise import NoiseModel
 
 HELP = """\
 Identify the laser beam H (point T and direction u' in the flange frame, plus the plate tilt)
@@ -40,7 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def load_calibration_data(path: str):
+def load_calibration_data(path: str) -> Dataset:
     """A :class:`~calib_core.io.Dataset` from a CSV file or a session database."""
     from calib_core.io import dataset_from_frame, load_dataset
 
@@ -51,7 +55,7 @@ def load_calibration_data(path: str):
     return load_dataset(path)
 
 
-def load_noise(path: str | None):
+def load_noise(path: str | None) -> NoiseModel:
     from calib_core.io import load_toml
     from calib_core.noise import NoiseModel
 
