@@ -16,7 +16,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from calib_core.calibrate import BeamCalibration
-from calib_core.model import SCHOENFLIES_PARAMS, Poses, rotation_about_z
+from calib_core.model import GENERAL_PARAMS, SCHOENFLIES_PARAMS, Poses, rotation_about_z
 from calib_core.noise import NoiseModel
 from calib_core.pyramid import PyramidGeometry
 
@@ -65,18 +65,39 @@ class Scan:
 
 def scan_targets(targets: np.ndarray, rng: np.random.Generator,
                  noise: NoiseModel | None = None, theta_deg: np.ndarray | None = None,
-                 d0: np.ndarray | None = None) -> Scan:
-    """Reported poses and readings that put the true spot on each target (n, 3)."""
+                 d0: np.ndarray | None = None, tilt_deg: float = 0.0) -> Scan:
+    """Reported poses and readings that put the true spot on each target (n, 3).
+
+    ``tilt_deg > 0``: a 6-dof flange, ``Rz(theta)`` times a random tilt up to ``tilt_deg``,
+    reported as a rotation matrix with noise about each axis (``theta_deg`` is then None).
+    """
     noise = noise or NoiseModel()
     n = len(targets)
     theta = rng.uniform(-30, 30, n) if theta_deg is None else np.asarray(theta_deg, float)
     d_true = rng.uniform(-4, 4, n) if d0 is None else np.asarray(d0, float)
     rot = rotation_about_z(theta)
+    if tilt_deg > 0:
+        rot = np.array([random_rotation(rng, tilt_deg) @ r for r in rot])
     origin = targets - np.einsum("nij,nj->ni", rot, TRUE_T[None] + d_true[:, None] * TRUE_U)
     pos = origin + rng.normal(size=(n, 3)) * [noise.robot_xy, noise.robot_xy, noise.robot_z]
-    theta_rep = theta + rng.normal(size=n) * noise.robot_theta_deg
     d_rep = d_true + rng.normal(size=n) * noise.sensor
+    if tilt_deg > 0:
+        err = Rotation.from_rotvec(np.radians(noise.robot_theta_deg) * rng.normal(size=(n, 3)))
+        return Scan(Poses(pos, err.as_matrix() @ rot, None), d_rep, targets)
+    theta_rep = theta + rng.normal(size=n) * noise.robot_theta_deg
     return Scan(Poses(pos, rotation_about_z(theta_rep), theta_rep), d_rep, targets)
+
+
+def general_calibration(rng: np.random.Generator | None = None) -> BeamCalibration:
+    """A 6-dof (general model) calibration: ``(x_t, y_t, z_t, a, b, c, alpha, beta, delta)``
+    with the true values (or a draw from the covariance with ``rng``); z is absolute."""
+    sig = np.array([*CALIB_SIGMA[0:2], 0.012, *CALIB_SIGMA[3:8], 0.012])
+    cov = np.diag(sig**2)
+    cov[2, 8] = cov[8, 2] = 0.5 * sig[2] * sig[8]
+    h = np.array([*TRUE_T, *TRUE_U, PLATE_ALPHA, PLATE_BETA, DELTA])
+    if rng is not None:
+        h = rng.multivariate_normal(h, cov)
+    return BeamCalibration(model="general", names=GENERAL_PARAMS, values=h, covariance=cov)
 
 
 def plane_targets(alpha: float, beta: float, offset: float, xy: np.ndarray) -> np.ndarray:

@@ -133,3 +133,21 @@ def test_bad_input() -> None:
         fit_plane(sim.plane_targets(0, 0, 0, XY), "median")
     with pytest.raises(InputError, match="non-finite"):
         fit_plane(np.full((4, 3), np.nan))
+
+
+def test_general_calibration_tilted_flange() -> None:
+    """6-dof flange (tilts up to 15 deg) with a general calibration: z is absolute (no datum),
+    rotation noise about every axis; parameters within 3 sigma, sigma honest."""
+    rng = np.random.default_rng(15)
+    targets = sim.plane_targets(ALPHA, BETA, OFFSET, XY)
+    truth = np.array([ALPHA, BETA, OFFSET])
+    z = []
+    for _ in range(100):
+        scan = sim.scan_targets(targets, rng, tilt_deg=15.0)
+        assert scan.poses.theta_deg is None
+        fit = fit_scan_plane(reconstruct(scan.poses, scan.d, sim.general_calibration(rng)))
+        z.append((np.array([fit.alpha, fit.beta, fit.offset]) - truth)
+                 / np.sqrt(np.diag(fit.covariance)))
+    assert np.all(np.abs(z[0]) < 3.5)
+    ratio = np.std(z, axis=0)
+    assert np.all((ratio > 0.7) & (ratio < 1.4)), ratio
