@@ -15,7 +15,7 @@ from calib_core.model import Poses, rotation_about_z, spot_positions
 from calib_core.noise import NoiseModel
 from tests.core.simdata import as_dataset, seed_grid, seed_truth, simulate, tilted_grid
 
-SHARED = Path(__file__).resolve().parents[3] / "shared" / "data"
+SHARED = Path(__file__).resolve().parents[2] / "static_data"  # copies of ../shared/data
 EXAMPLE = SHARED / "example_paper_grid.csv"
 NOISE = NoiseModel()
 
