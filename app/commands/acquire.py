@@ -19,7 +19,8 @@ where the session stopped without measuring stored poses again. Solve with
 
 Devices: the simulated workcell (--sim, the default when no hardware option is given; the
 workcell file sets the true beam, plate, noise and soft limits), or hardware: a GRBL robot
-(--robot-port), a Keyence IL sensor on a DL-RS1A (--sensor-port) and a camera (--camera).
+(--robot-port), a Keyence IL sensor on a DL-RS1A (--sensor-port) and a camera (--camera with
+its --camera-calib); soft limits from the [limits] table of --workcell (else the packaged cell).
 Invalid readings (sensor out of range, no spot) are retried, then the pose is stored as
 skipped with the reason. A device error stops the run with a message; the session keeps every
 stored pose; continue with --resume. Ctrl-C stops cleanly the same way.
@@ -72,7 +73,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     hw.add_argument("--sensor-id", type=int, default=0, help="Keyence amplifier ID")
     hw.add_argument("--camera", metavar="INDEX|URL", help="camera (cv2.VideoCapture source)")
     hw.add_argument("--camera-calib", metavar="FILE.json",
-                    help="camera calibration (homography + lens) for --camera")
+                    help="camera calibration JSON (camera_matrix, dist_coeffs, homography: "
+                         "pixels -> plate mm); required with --camera")
     p.set_defaults(func=run)
 
 
@@ -144,32 +146,61 @@ def _sim_devices(args: argparse.Namespace, workcell_text: str, source: str,
 
 
 def _hardware_devices(args: argparse.Namespace) -> tuple[Any, Any, Any]:
+    """Open the GRBL robot, the Keyence sensor and the OpenCV camera (closed again on error)."""
+    import json
+
     from calib_core.errors import InputError
 
     missing = [flag for flag, value in (("--robot-port", args.robot_port),
                                         ("--sensor-port", args.sensor_port),
-                                        ("--camera", args.camera)) if value is None]
+                                        ("--camera", args.camera),
+                                        ("--camera-calib", args.camera_calib)) if value is None]
     if missing:
         raise InputError(f"hardware acquisition needs {', '.join(missing)} too "
                          "(or use --sim)")
     try:
-        from drivers.camera_cv import OpenCVCamera
+        from app.commands.robot import load_limits
+        from drivers.camera_cv import OpenCVCamera, PixelToPlate
         from drivers.grbl import GrblRobot
         from drivers.keyence_il import KeyenceIL
     except ImportError as exc:
         raise InputError(f"hardware driver not available in this installation ({exc})") from None
+    try:
+        mapping = PixelToPlate.from_json_dict(json.loads(
+            Path(args.camera_calib).read_text(encoding="utf-8")))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"{args.camera_calib}: cannot read the camera calibration "
+                         f"({exc})") from None
+    limits, _ = load_limits(args.workcell)
     opened: list[Any] = []
     try:
-        opened.append(GrblRobot(args.robot_port, baudrate=args.robot_baud))
+        opened.append(GrblRobot(args.robot_port, limits, baudrate=args.robot_baud))
         opened.append(KeyenceIL(args.sensor_port, baudrate=args.sensor_baud,
                                 amp_id=args.sensor_id))
         source: int | str = int(args.camera) if args.camera.isdigit() else args.camera
-        opened.append(OpenCVCamera(source, calibration=args.camera_calib))
+        opened.append(OpenCVCamera(source, mapping=mapping))
     except BaseException:
         for device in opened:
-            device.close()
+            with contextlib.suppress(Exception):
+                device.close()
         raise
     return opened[0], opened[1], opened[2]
+
+
+def _noise_of(text: str, source: str) -> dict[str, float]:
+    """The ``[noise]`` table of a (possibly partial) workcell text, else the seed's Table 2."""
+    import tomllib
+
+    from calib_core.errors import InputError
+    from calib_core.noise import NoiseModel
+
+    try:
+        data = tomllib.loads(text) if text else {}
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"{source}: not valid TOML ({exc})") from None
+    if "noise" not in data:
+        return NoiseModel().as_dict()
+    return NoiseModel.from_mapping(data, source).as_dict()
 
 
 def _workcell_text(path: str | None) -> tuple[str, str]:
@@ -244,8 +275,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         if hardware:
             robot, sensor, camera = _hardware_devices(args)
-            if workcell_text:
-                noise = _parse_workcell(workcell_text, source).noise.as_dict()
+            noise = _noise_of(workcell_text, source)
         else:
             # a resumed simulation continues with fresh noise draws (same truth)
             n_stored = 0 if session is None else len(session.stored_indices())

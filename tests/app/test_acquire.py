@@ -232,7 +232,7 @@ def test_acquire_export_and_refusals(tmp_path: Path) -> None:
         assert "SimRobot" in s.meta_json("drivers")["robot"]
         assert "[beam]" in s.meta["workcell"]
     r = _lasercal("acquire", "--session", str(tmp_path / "x.db"), "--robot-port", "/dev/null")
-    assert r.returncode == 2 and "needs --sensor-port, --camera too" in r.stderr
+    assert r.returncode == 2 and "needs --sensor-port, --camera, --camera-calib too" in r.stderr
     assert not (tmp_path / "x.db").exists()
     r = _lasercal("acquire", "--session", str(tmp_path / "x.db"), "--preview")
     assert r.returncode == 0 and len(r.stdout.splitlines()) == 44
@@ -283,3 +283,62 @@ def test_sigkill_mid_session_then_resume_loses_and_duplicates_nothing(tmp_path: 
     frame = pd.read_csv(io.StringIO(_lasercal("export", str(db), "--csv", "-").stdout),
                         comment="#")
     assert len(frame) == 42
+
+
+def test_hardware_drivers_over_pty_emulators(tmp_path: Path) -> None:
+    """GrblRobot and KeyenceIL through their pty emulators, whose physics follow one SimWorld;
+    a GRBL error is retried, a stuck sensor skips its pose, the rest solves to the truth."""
+    from drivers.emulators import GrblEmulator, KeyenceEmulator
+    from drivers.grbl import GrblRobot
+    from drivers.keyence_il import KeyenceIL
+
+    world = SimWorld(load_workcell(), seed=11)
+    noise = world.workcell.noise
+    grbl = GrblEmulator(start=(0.0, 0.0, 20.0, 0.0)).start()
+
+    def pose() -> FlangePose:
+        return FlangePose(*grbl.position)
+
+    def displacement() -> float | None:
+        hit = world.beam_hit(pose())
+        return None if hit is None else hit.s + float(world.normal()) * noise.sensor
+
+    class PtyWorldCamera(SimCameraDirect):  # the spot where the emulated robot really is
+        def measure_spot(self) -> SpotMeasurement:
+            hit = world.beam_hit(pose())
+            xy = hit.p[:2] + world.normal(2) * noise.camera
+            return SpotMeasurement(True, float(xy[0]), float(xy[1]), quality=1.0)
+
+    keyence = KeyenceEmulator(displacement).start()
+    robot = GrblRobot(grbl.path, world.workcell.limits)
+    sensor = KeyenceIL(keyence.path)
+    try:
+        grbl.inject("error", code=33, match="G90")  # the first move is rejected once
+        keyence.inject("stuck", count=2, match="SR")  # +99.999 for both attempts at pose 0
+        grid = paper_grid()
+        with Session.create(tmp_path / "hw.db", grid) as session:
+            runner = Runner(session, robot, sensor, PtyWorldCamera(world),
+                            RunnerConfig(samples_per_pose=2, max_retries=1,
+                                         driver_retry_delay_s=0.0))
+            result = runner.run()
+            samples = session.samples()
+            events = session.events()
+    finally:
+        robot.close()
+        sensor.close()
+        grbl.close()
+        keyence.close()
+    assert (result.state, result.done, result.skipped) == ("finished", 42, 1)
+    assert samples[0].status == "skipped"
+    assert samples[0].reason == "sensor out-of-range (+99.999) (2 attempt(s))"
+    assert not any(kind == "driver-error" for _, kind, _ in events)  # retried in place
+    g90 = [line for line in grbl.received if line.startswith("G90")]
+    assert len(g90) == 43  # 42 moves + the rejected one
+    frame = read_session_frame(tmp_path / "hw.db")
+    assert len(frame) == 41
+    np.testing.assert_allclose(frame[["x_o", "y_o", "z_o", "theta_deg"]].to_numpy(),
+                               grid.poses[1:], atol=1e-3)  # read back from GRBL, 3 decimals
+    cal = solve(dataset_from_frame(frame, "hw.db")).to_json_dict()
+    truth = world.truth()
+    for name, value in cal["params"].items():
+        assert abs(value - truth[name]) < 3 * cal["sigma"][name], name
