@@ -445,14 +445,22 @@ def evaluate(params: Mapping[str, float], poses: PoseSet) -> dict[str, object]:
     - ``RP_l = mean(l_j) + 3 S_l`` with ``l_j = |apex_j - mean(apex)|`` and ``S_l`` its
       standard deviation (n - 1); ``RP_o = max over axes of 3 S`` of the ``e_j`` components.
 
-    ``ap_*``/``rp_*`` are the worst over those configurations (None without repeated visits);
+    ``noise_*_rms`` is the RMS error the measurement noise alone gives (``sqrt(mean tr S)``
+    of the rotation / apex blocks): the floor a perfect model reaches. ``ap_*``/``rp_*`` are
+    the worst over those configurations (None without repeated visits);
     ``iso_poses`` lists each.
     """
     r, a = forward(params, poses.q_deg)
     err = pose_error(poses.rotation, poses.apex, r, a)
     ang = np.linalg.norm(err[:, :3], axis=1)
     dist = np.linalg.norm(err[:, 3:], axis=1)
-    out: dict[str, object] = {"n_poses": len(poses)}
+    out: dict[str, object] = {
+        "n_poses": len(poses),
+        "noise_orientation_rms_deg": float(np.sqrt(np.mean(np.trace(poses.cov[:, :3, :3],
+                                                                    axis1=1, axis2=2)))),
+        "noise_apex_rms_mm": float(np.sqrt(np.mean(np.trace(poses.cov[:, 3:, 3:], axis1=1,
+                                                            axis2=2)))),
+    }
     for key, x in (("orientation", ang), ("apex", dist)):
         unit = "deg" if key == "orientation" else "mm"
         mean, rms, mx = _stats(x)

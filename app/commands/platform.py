@@ -372,20 +372,22 @@ def format_report(r: dict[str, Any], source: str) -> str:
     if r["unidentifiable"]:
         lines += ["", "not identifiable (kept at nominal):"]
         lines += [f"  {u['name']}: {u['reason']}" for u in r["unidentifiable"]]
-    lines += ["", "validation (ISO 9283 style)      before      after"]
+    lines += ["", "validation (ISO 9283 style)        before      after"]
     rows = (("orientation mean (deg)", "orientation_mean_deg"),
             ("orientation RMS (deg)", "orientation_rms_deg"),
             ("orientation max (deg)", "orientation_max_deg"),
             ("apex mean (mm)", "apex_mean_mm"), ("apex RMS (mm)", "apex_rms_mm"),
-            ("apex max (mm)", "apex_max_mm"), ("AP position (mm)", "ap_mm"),
+            ("apex max (mm)", "apex_max_mm"),
+            ("noise floor orientation (deg)", "noise_orientation_rms_deg"),
+            ("noise floor apex (mm)", "noise_apex_rms_mm"), ("AP position (mm)", "ap_mm"),
             ("AP orientation (deg)", "ap_deg"), ("RP position (mm)", "rp_mm"),
             ("RP orientation (deg)", "rp_deg"))
     for label, key in rows:
         b, a = r["before"][key], r["after"][key]
         if b is None:
-            lines.append(f"  {label:<28} {'n/a (no repeated visits)':>21}")
+            lines.append(f"  {label:<30} {'n/a (no repeated visits)':>21}")
         else:
-            lines.append(f"  {label:<28} {b:>10.5f} {a:>10.5f}")
+            lines.append(f"  {label:<30} {b:>10.5f} {a:>10.5f}")
     if r["warnings"]:
         lines += ["", "warnings:"] + [f"  {w}" for w in r["warnings"]]
     return "\n".join(lines) + "\n"

@@ -168,6 +168,9 @@ def test_cli_simulate_calibrate_round_trip(mode: str, tmp_path: Path,
     # scans: the 3 mm pyramid's orientation is measured to ~0.1 deg, which bounds the "after"
     factor = 10 if mode == "poses" else 4
     assert a["orientation_rms_deg"] < b["orientation_rms_deg"] / factor
+    # ... and after calibration the errors are at the measurement-noise floor
+    assert a["orientation_rms_deg"] < 1.5 * a["noise_orientation_rms_deg"]
+    assert a["apex_rms_mm"] < 1.5 * a["noise_apex_rms_mm"]
     code, out, err = _cli(["platform", "calibrate", str(out_dir)], capsys)
     assert code == 0 and "orientation RMS (deg)" in out and "not identifiable" in out
     # real campaigns need no manifest: nominal from the packaged file, mode from the columns
