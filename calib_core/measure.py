@@ -323,12 +323,19 @@ def compare_with_camera(scan_xyz: np.ndarray, spot_xy: np.ndarray, fit: PlaneFit
     scanner's, and per-axis point errors ``x - x_p``, ``y - y_p``, ``z - z_cam(x_p, y_p)``
     (``z_cam`` the camera plane), each as mean-abs / RMS / max (mm)."""
     spot_xy = np.asarray(spot_xy, dtype=float)
-    cam = fit_plane(np.column_stack([spot_xy, scan_xyz[:, 2]]), fit.method)
-    errors = np.column_stack([scan_xyz[:, 0:2] - spot_xy, scan_xyz[:, 2] - cam.z_at(spot_xy)])
+    cam_pts = np.column_stack([spot_xy, scan_xyz[:, 2]])
+    if fit.method == "ls":
+        cam = ls_plane(cam_pts)[0]
+    else:
+        nrm, h, _, _ = orthogonal_plane(cam_pts)
+        cam = np.array([-nrm[0], -nrm[1], h]) / (nrm[2] if abs(nrm[2]) > 1e-12 else 1e-12)
+    z_cam = cam[0] * spot_xy[:, 0] + cam[1] * spot_xy[:, 1] + cam[2]
+    errors = np.column_stack([scan_xyz[:, 0:2] - spot_xy, scan_xyz[:, 2] - z_cam])
+    keys = ("alpha", "beta", "offset")
+    mine = (fit.alpha, fit.beta, fit.offset)
     return {
-        "camera_plane": {"alpha": cam.alpha, "beta": cam.beta, "offset": cam.offset},
-        "difference": {"alpha": fit.alpha - cam.alpha, "beta": fit.beta - cam.beta,
-                       "offset": fit.offset - cam.offset},
+        "camera_plane": {k: float(v) for k, v in zip(keys, cam, strict=True)},
+        "difference": {k: float(m - v) for k, m, v in zip(keys, mine, cam, strict=True)},
         "point_errors": axis_statistics(errors),
     }
 

@@ -119,6 +119,9 @@ def test_camera_comparison_like_tables_3_4() -> None:
     diff = cmp["difference"]
     assert abs(diff["alpha"]) < 1e-3 and abs(diff["beta"]) < 1e-3 and abs(diff["offset"]) < 0.05
     assert cmp["camera_plane"]["alpha"] == pytest.approx(fit.alpha - diff["alpha"])
+    # three points are enough for the camera plane too (no scatter needed)
+    few = compare_with_camera(pts.xyz[:3], spot_xy[:3], fit)
+    assert np.isfinite(few["camera_plane"]["offset"])
 
 
 def test_bad_input() -> None:
