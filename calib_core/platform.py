@@ -92,7 +92,7 @@ DEFAULT_NOMINAL: dict[str, float] = {
 _STEP = {name: (1e-7 if name.startswith("scale") else 1e-5) for name in PARAM_NAMES}
 #: Relative singular value below which a parameter combination counts as unobservable.
 RANK_TOL = 1e-6
-#: Order in which parameters are preferred for fixing when a null vector weighs several equally.
+#: Order in which parameters are preferred for fixing when a null vector weighs several alike.
 _FIX_PREFERENCE = ("out_rz_deg", "link1_az_deg", "link2_az_deg", "mount_rx_deg", "mount_ry_deg",
                    "mount_rz_deg", "mount_x_mm", "mount_y_mm", "mount_z_mm", "zero1_deg",
                    "zero2_deg")
@@ -117,10 +117,6 @@ def params_from_mapping(data: Mapping[str, object], source: str = "platform para
             raise InputError(f"{source}: {key} = {value!r} is not finite")
         out[key] = v
     return out
-
-
-def _vector(params: Mapping[str, float]) -> np.ndarray:
-    return np.array([float(params[n]) for n in PARAM_NAMES])
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
