@@ -20,17 +20,20 @@ from __future__ import annotations
 import contextlib
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
 
 from app.session import Sample, Session
+from calib_core.grid import PoseGrid
 from drivers.base import (
     DisplacementSensor,
     DriverError,
     FlangePose,
+    MotionRefused,
     Robot,
+    SoftLimits,
     SpotCamera,
 )
 
@@ -105,6 +108,17 @@ def describe_device(device: object) -> str:
     return name
 
 
+def check_grid_limits(grid: PoseGrid, limits: SoftLimits,
+                      indices: Iterable[int] | None = None) -> None:
+    """Raise :class:`MotionRefused` naming the first grid pose outside ``limits``."""
+    for index in range(len(grid)) if indices is None else indices:
+        try:
+            limits.check(FlangePose(*grid.pose(index)))
+        except MotionRefused as exc:
+            raise MotionRefused(f"grid pose {index}: {exc}; fix the grid or the limits "
+                                "(no pose was measured)") from None
+
+
 class Runner:
     """Runs the pending poses of ``session`` with the given devices (see the module doc)."""
 
@@ -173,8 +187,9 @@ class Runner:
             raise RuntimeError("this runner is already running")
         try:
             self._abort.clear()
-            self._set_state("running")
             pending = self.session.pending_indices(retry_skipped=self.config.retry_skipped)
+            self._check_limits(pending)
+            self._set_state("running")
             k = 0
             while k < len(pending):
                 if self._abort.is_set():
@@ -208,6 +223,11 @@ class Runner:
             raise
         finally:
             self._running.release()
+
+    def _check_limits(self, pending: list[int]) -> None:
+        limits = getattr(self.robot, "limits", None)
+        if limits is not None:
+            check_grid_limits(self._grid, limits, pending)
 
     def _finish(self, state: str, message: str) -> Progress:
         self._message = message

@@ -39,9 +39,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="continue an existing session: grid, workcell and settings from the file")
     p.add_argument("--retry-skipped", action="store_true",
                    help="with --resume: measure the skipped poses again")
-    p.add_argument("--grid", default="paper", metavar="paper|FILE.csv",
+    p.add_argument("--grid", metavar="paper|FILE.csv",
                    help="pose grid: 'paper' (the seed's 42 poses: 4x3 x-y grid at z=15,20,25 "
-                        "mm plus 6 rotations -6..6 deg) or a CSV with x_o,y_o,z_o,theta_deg")
+                        "mm plus 6 rotations -6..6 deg; the default) or a CSV with x_o,y_o,z_o,"
+                        "theta_deg")
     p.add_argument("--preview", action="store_true",
                    help="print the grid's poses and exit (nothing moves, nothing is written)")
     p.add_argument("--samples", type=int, metavar="K",
@@ -59,7 +60,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     sim.add_argument("--workcell", metavar="FILE.toml",
                      help="workcell file (default: the packaged seed cell); with hardware it "
                           "is stored in the session (noise, limits)")
-    sim.add_argument("--seed", type=int, default=0, help="random seed of the simulation")
+    sim.add_argument("--seed", type=int, help="random seed of the simulation (default 0)")
     sim.add_argument("--move-time", type=float, metavar="S",
                      help="simulated duration of one move (default: from the workcell file)")
     sim.add_argument("--sim-camera", choices=("rendered", "direct"), default="rendered",
@@ -225,7 +226,7 @@ def _workcell_text(path: str | None) -> tuple[str, str]:
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from app.acquisition import Runner, RunnerConfig, describe_device
+    from app.acquisition import Runner, RunnerConfig, check_grid_limits, describe_device
     from app.session import Session
     from calib_core.errors import InputError
     from calib_core.grid import load_grid
@@ -236,15 +237,26 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--sim cannot be combined with --robot-port/--sensor-port/--camera")
     if args.retry_skipped and not args.resume:
         raise InputError("--retry-skipped needs --resume")
+    if args.resume:
+        fixed = [flag for flag, value in (("--grid", args.grid), ("--workcell", args.workcell),
+                                          ("--seed", args.seed)) if value is not None]
+        if fixed:
+            raise InputError(f"{', '.join(fixed)} cannot change on --resume: the session file "
+                             "keeps its own")
+    if args.move_time is not None and not args.move_time >= 0:
+        raise InputError(f"--move-time must be >= 0 seconds, got {args.move_time}")
 
     if args.preview:
         grid = Session.open(args.session, readonly=True).grid if args.resume else \
-            load_grid(args.grid)
+            load_grid(args.grid or "paper")
         print(grid.preview())
         return 0
 
     session_path = Path(args.session)
     if args.resume:
+        if not session_path.exists():
+            raise InputError(f"{session_path}: no such session file; start a new session "
+                             "without --resume")
         session = Session.open(session_path)
         settings = session.meta_json("settings")
         if settings.get("mode", "sim") != ("hardware" if hardware else "sim"):
@@ -257,7 +269,7 @@ def run(args: argparse.Namespace) -> int:
         if session_path.exists():
             raise InputError(f"{session_path}: session file already exists; continue it with "
                              "--resume or choose another file")
-        grid = load_grid(args.grid)
+        grid = load_grid(args.grid or "paper")
         settings = {}
         workcell_text, source = _workcell_text(args.workcell) if (
             not hardware or args.workcell) else ("", "")
@@ -267,7 +279,7 @@ def run(args: argparse.Namespace) -> int:
     settle = args.settle if args.settle is not None else settings.get(
         "settle_s", 0.3 if hardware else 0.0)
     retries = args.retries if args.retries is not None else settings.get("max_retries", 2)
-    seed = int(settings.get("seed", args.seed))
+    seed = int(settings.get("seed", args.seed or 0))
     config = RunnerConfig(samples_per_pose=int(samples), settle_s=float(settle),
                           max_retries=int(retries), retry_skipped=args.retry_skipped,
                           return_on_pause=True)
@@ -289,6 +301,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         if session is None:
+            check_grid_limits(grid, robot.limits)
             session = Session.create(
                 session_path, grid, workcell_toml=workcell_text, noise=noise,
                 drivers={"robot": describe_device(robot), "sensor": describe_device(sensor),
@@ -296,7 +309,7 @@ def run(args: argparse.Namespace) -> int:
                 settings={"mode": "hardware" if hardware else "sim", "seed": seed,
                           "samples_per_pose": config.samples_per_pose,
                           "settle_s": config.settle_s, "max_retries": config.max_retries,
-                          "grid": str(args.grid), "workcell_source": source})
+                          "grid": args.grid or "paper", "workcell_source": source})
         else:
             session.log_event("resume", f"resumed with {json.dumps(vars(args), default=str)}")
         bar = ProgressBar(sys.stderr, args.quiet)

@@ -342,3 +342,21 @@ def test_hardware_drivers_over_pty_emulators(tmp_path: Path) -> None:
     truth = world.truth()
     for name, value in cal["params"].items():
         assert abs(value - truth[name]) < 3 * cal["sigma"][name], name
+
+
+def test_grid_outside_soft_limits_is_refused_before_anything(tmp_path: Path) -> None:
+    grid_file = tmp_path / "g.csv"
+    grid_file.write_text("x_o,y_o,z_o,theta_deg\n0,0,20,0\n0,0,60,0\n")
+    db = tmp_path / "s.db"
+    r = _lasercal("acquire", "--session", str(db), "--grid", str(grid_file), "--quiet")
+    assert r.returncode == 2
+    assert r.stderr == ("error: grid pose 1: target z=60 is outside the soft limits [0, 40]; "
+                        "nothing was sent to the robot; fix the grid or the limits "
+                        "(no pose was measured)\n")
+    assert not db.exists()
+    r = _lasercal("acquire", "--session", str(db), "--resume")
+    assert r.returncode == 2 and "start a new session without --resume" in r.stderr
+    r = _lasercal("acquire", "--session", str(db), "--resume", "--grid", "paper")
+    assert r.returncode == 2
+    assert r.stderr == ("error: --grid cannot change on --resume: the session file keeps "
+                        "its own\n")
