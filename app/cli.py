@@ -16,14 +16,20 @@ from collections.abc import Sequence
 from calib_core.errors import LasercalError
 
 #: Sub-command modules, in the order ``--help`` lists them.
-COMMANDS: tuple[str, ...] = ("solve", "serve", "acquire", "export", "platform", "measure", "sensor", "robot", "emulate")
+COMMANDS: tuple[str, ...] = ("solve", "serve", "acquire", "export", "platform", "measure",
+                             "sensor", "robot", "emulate", "report")
+
+
+def one_line(text: str) -> str:
+    """``text`` with control characters (newlines, CR, ...) escaped, so it stays on one line."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
 class ArgumentParser(argparse.ArgumentParser):
     """argparse that reports a usage error as one ``error:`` line and exit status 2."""
 
     def error(self, message: str) -> None:  # type: ignore[override]
-        sys.stderr.write(f"error: {self.prog}: {message} (see --help)\n")
+        sys.stderr.write(f"error: {one_line(f'{self.prog}: {message}')} (see --help)\n")
         raise SystemExit(2)
 
 
@@ -49,7 +55,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except LasercalError as exc:
-        sys.stderr.write(f"error: {exc}\n")
+        sys.stderr.write(f"error: {one_line(str(exc))}\n")
         return 2
     except BrokenPipeError:  # e.g. piped into `head`: the reader has what it wanted
         sys.stderr.close()
@@ -60,8 +66,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Exception as exc:  # last line of defence: never a traceback for the operator
         if os.environ.get("LASERCAL_DEBUG"):
             raise
-        sys.stderr.write(f"error: internal failure ({type(exc).__name__}: {exc}); "
-                         "rerun with LASERCAL_DEBUG=1 for details\n")
+        sys.stderr.write(f"error: internal failure ({one_line(f'{type(exc).__name__}: {exc}')}"
+                         "); rerun with LASERCAL_DEBUG=1 for details\n")
         return 1
 
 
