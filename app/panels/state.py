@@ -1,0 +1,319 @@
+"""Shared state of the dashboard: devices, session, grid, calibration, live view.
+
+The devices are only touched on the worker thread (:class:`app.worker.Worker`); GUI callbacks
+read the plain attributes here and enqueue commands. Listeners (``on_change``) let the panels
+refresh their handles when the state changes (any thread; viser handles are thread-safe).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from app.worker import Worker
+from calib_core.errors import InputError
+from calib_core.grid import PoseGrid, paper_grid
+from drivers.base import DriverError, FlangePose, MotionRefused, SensorReading
+
+#: Simulated move duration when the workcell TOML says 0 (makes the motion visible).
+SIM_MOVE_TIME_S = 0.05
+#: Live view: at most this many scene updates per second.
+LIVE_MAX_HZ = 40.0
+_LEVEL_COLOR = {"info": "blue", "warning": "yellow", "error": "red", "success": "green"}
+
+
+def pose_rotation(pose: FlangePose) -> np.ndarray:
+    """Flange rotation matrix: from the quaternion when set, else ``Rz(theta)``."""
+    from calib_core.model import rotation_about_z, rotation_from_quaternion
+
+    if pose.quaternion is not None:
+        return rotation_from_quaternion(np.asarray([pose.quaternion]))[0]
+    return rotation_about_z(np.array([pose.theta_deg]))[0]
+
+
+@dataclass(frozen=True)
+class LiveSample:
+    """Latest pose and reading seen (from the live view or the acquisition)."""
+
+    pose: FlangePose
+    reading: SensorReading | None
+    t: float
+
+
+class TapRobot:
+    """A robot wrapper that reports every pose to the live view (same interface)."""
+
+    def __init__(self, robot: Any, app: AppState) -> None:
+        self._robot, self._app = robot, app
+        self.limits = robot.limits
+
+    def move_to(self, target: FlangePose) -> FlangePose:
+        pose = self._robot.move_to(target)
+        self._app.publish(pose, None)
+        return pose
+
+    def read_pose(self) -> FlangePose:
+        return self._robot.read_pose()
+
+    def stop(self) -> None:
+        self._robot.stop()
+
+    def close(self) -> None:
+        self._robot.close()
+
+
+class TapSensor:
+    """A sensor wrapper that reports every reading to the live view."""
+
+    def __init__(self, sensor: Any, app: AppState) -> None:
+        self._sensor, self._app = sensor, app
+
+    def read(self) -> SensorReading:
+        reading = self._sensor.read()
+        self._app.publish(None, reading)
+        return reading
+
+    def zero(self) -> None:
+        self._sensor.zero()
+
+    def close(self) -> None:
+        self._sensor.close()
+
+
+class AppState:
+    """Everything the panels share. ``server`` is a :class:`viser.ViserServer`."""
+
+    def __init__(self, server: Any, workcell: Any, *, sim: bool = True,
+                 session_path: Path | None = None, seed: int | None = 0,
+                 sim_move_time_s: float | None = None) -> None:
+        from app.scene import WorkcellScene
+
+        self.server = server
+        self.workcell = workcell
+        self.sim = sim
+        self.seed = seed
+        self.sim_move_time_s = sim_move_time_s
+        self.session_path = session_path
+        self.session: Any = None
+        self.grid: PoseGrid = paper_grid()
+        self.runner: Any = None
+        self.progress: Any = None
+        self.armed = False
+        self.live = True
+        self.robot: Any = None
+        self.sensor: Any = None
+        self.camera: Any = None
+        self.world: Any = None
+        self.calibration: Any = None
+        self.solve_view: Any = None
+        self.excluded: set[int] = set()
+        self.flagged: set[int] = set()
+        self.messages: deque[tuple[float, str, str, str]] = deque(maxlen=200)
+        self.latest: LiveSample | None = None
+        self.last_solve_s: float | None = None
+        self._listeners: dict[str, list[Callable[[], None]]] = {}
+        self._last_push = 0.0
+        self._publish_lock = threading.Lock()
+        self.scene = WorkcellScene(server, workcell) if server is not None else None
+        self.worker = Worker(self.notify, idle=self._idle, idle_period_s=1.0 / LIVE_MAX_HZ)
+
+    # ---- events ------------------------------------------------------------------------------
+    def on_change(self, topic: str, fn: Callable[[], None]) -> None:
+        """Call ``fn()`` whenever ``topic`` changes ('devices', 'progress', 'solve', 'grid',
+        'session', 'arm')."""
+        self._listeners.setdefault(topic, []).append(fn)
+
+    def changed(self, topic: str) -> None:
+        for fn in self._listeners.get(topic, []):
+            try:
+                fn()
+            except Exception as exc:  # a display refresh must not break a command
+                self.notify("display", f"refresh of {topic} failed: {exc}", "warning")
+
+    def notify(self, title: str, body: str, level: str = "info") -> None:
+        """Show a notification in every connected browser tab (and keep it in ``messages``)."""
+        self.messages.append((time.time(), level, title, body))
+        if self.server is None:
+            return
+        for client in list(self.server.get_clients().values()):
+            with contextlib.suppress(Exception):
+                client.add_notification(title, body, color=_LEVEL_COLOR.get(level),
+                                        auto_close_seconds=None if level == "error" else 6.0)
+
+    # ---- devices (worker thread) -------------------------------------------------------------
+    @property
+    def connected(self) -> bool:
+        return self.robot is not None and self.sensor is not None and self.camera is not None
+
+    def connect_sim(self) -> None:
+        """Connect the simulated robot, sensor and camera (worker thread)."""
+        from drivers.sim.devices import SimCameraDirect, SimRobot, SimSensor
+        from drivers.sim.world import SimWorld
+
+        self.disconnect()
+        world = SimWorld(self.workcell, seed=self.seed)
+        move = self.sim_move_time_s
+        if move is None:
+            move = self.workcell.timing.move_time_s or SIM_MOVE_TIME_S
+        self.world, self.robot = world, SimRobot(world, move_time_s=move)
+        self.sensor, self.camera = SimSensor(world), SimCameraDirect(world)
+        self.sim = True
+        self.publish(self.robot.read_pose(), self.sensor.read())
+        self.changed("devices")
+
+    def connect_hardware(self, robot_port: str, sensor_port: str, camera: str) -> None:
+        """Connect the real devices (worker thread); clear error when a driver is missing."""
+        import importlib
+
+        self.disconnect()
+        try:
+            keyence = importlib.import_module("drivers.keyence_il")
+            grbl = importlib.import_module("drivers.grbl")
+            cam = importlib.import_module("drivers.camera_cv")
+        except ImportError as exc:
+            raise DriverError(f"hardware driver not available in this installation ({exc.name})"
+                              ) from None
+        robot_cls = next((getattr(grbl, n) for n in ("GrblRobot", "Grbl") if hasattr(grbl, n)),
+                         None)
+        cam_cls = next((getattr(cam, n) for n in ("CvSpotCamera", "SpotCameraCV", "CameraCV")
+                        if hasattr(cam, n)), None)
+        if robot_cls is None or cam_cls is None:
+            raise DriverError("hardware drivers found but their classes are not recognised")
+        self.robot = robot_cls(robot_port, limits=self.workcell.limits)
+        self.sensor = keyence.KeyenceIL(sensor_port)
+        self.camera = cam_cls(camera)
+        self.world = None
+        self.sim = False
+        self.changed("devices")
+
+    def disconnect(self) -> None:
+        for dev in (self.robot, self.sensor, self.camera):
+            if dev is not None:
+                with contextlib.suppress(Exception):
+                    dev.close()
+        self.robot = self.sensor = self.camera = self.world = None
+        self.changed("devices")
+
+    def require_devices(self) -> None:
+        if not self.connected:
+            raise DriverError("no devices connected: use Setup > Connect first")
+
+    def require_motion(self) -> None:
+        """Refuse motion unless armed, connected and no acquisition is running."""
+        if not self.armed:
+            raise MotionRefused("motion is disarmed: switch on 'Arm motion' first")
+        self.require_devices()
+        if self.runner is not None and self.runner.state == "running":
+            raise MotionRefused("an acquisition is running: pause or abort it first")
+
+    def move_to(self, target: FlangePose) -> FlangePose:
+        """Checked move (worker thread): armed, soft limits, max step; publishes the pose."""
+        self.require_motion()
+        current = self.robot.read_pose()
+        self.robot.limits.check(target, current)
+        pose = self.robot.move_to(target)
+        self.publish(pose, self.sensor.read())
+        return pose
+
+    def stop_motion(self) -> None:
+        """STOP (any thread): feed hold now, pause a running acquisition, disarm motion."""
+        self.armed = False
+        if self.runner is not None and self.runner.state == "running":
+            self.runner.pause("STOP pressed by the operator")
+        robot = self.robot
+        if robot is not None:
+            robot.stop()
+        self.changed("arm")
+
+    # ---- live view -----------------------------------------------------------------------------
+    def _idle(self) -> None:
+        """Worker idle hook: one live reading while the live view is on."""
+        if not (self.live and self.connected):
+            return
+        if self.runner is not None and self.runner.state == "running":
+            return
+        self.publish(self.robot.read_pose(), self.sensor.read())
+
+    def publish(self, pose: FlangePose | None, reading: SensorReading | None) -> None:
+        """Record the latest pose/reading and redraw flange, beam and live spot (throttled)."""
+        with self._publish_lock:
+            prev = self.latest
+            if pose is None:
+                if prev is None:
+                    return
+                pose = prev.pose
+            self.latest = LiveSample(pose, reading, time.monotonic())
+            now = time.monotonic()
+            if self.scene is None or now - self._last_push < 1.0 / LIVE_MAX_HZ:
+                return
+            self._last_push = now
+        d = reading.value if reading is not None and reading.ok else None
+        self.scene.set_pose(np.array([pose.x, pose.y, pose.z]), pose_rotation(pose), d)
+        self.changed("live")
+
+    # ---- session ------------------------------------------------------------------------------
+    def open_session(self, path: Path) -> None:
+        """Open an existing session file for review or to continue it."""
+        from app.session import Session
+
+        self.close_session()
+        try:
+            session = Session.open(path)
+        except InputError:
+            raise
+        self.session, self.session_path = session, Path(path)
+        self.grid = session.grid
+        self.changed("grid")
+        self.changed("session")
+
+    def new_session_path(self) -> Path:
+        stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
+        base = Path.cwd() / f"lasercal-session-{stamp}.db"
+        k = 2
+        while base.exists():
+            base = Path.cwd() / f"lasercal-session-{stamp}-{k}.db"
+            k += 1
+        return base
+
+    def ensure_session(self) -> Any:
+        """The session to acquire into: the open one while poses are pending, else a new file."""
+        from app.session import Session
+
+        if self.session is not None and self.session.pending_indices():
+            return self.session
+        if self.session is None and self.session_path is not None and self.session_path.exists():
+            self.open_session(self.session_path)
+            if self.session.pending_indices():
+                return self.session
+        path = self.session_path
+        if path is None or path.exists():
+            path = self.new_session_path()
+        self.close_session()
+        toml = ""
+        with contextlib.suppress(Exception):
+            toml = Path(self.workcell.source).read_text() if Path(
+                self.workcell.source).is_file() else ""
+        self.session = Session.create(path, self.grid, workcell_toml=toml,
+                                      drivers={"robot": type(self.robot).__name__,
+                                               "sensor": type(self.sensor).__name__,
+                                               "camera": type(self.camera).__name__})
+        self.session_path = path
+        self.excluded, self.flagged = set(), set()
+        self.calibration = self.solve_view = None
+        self.changed("session")
+        return self.session
+
+    def close_session(self) -> None:
+        if self.session is not None:
+            with contextlib.suppress(Exception):
+                self.session.close()
+        self.session = None
