@@ -10,9 +10,11 @@ Control (thread-safe, from any thread): :meth:`Runner.pause` (after the pose in 
 :meth:`Runner.resume`, :meth:`Runner.abort` (the pose in flight is dropped, never half-stored).
 A :class:`~drivers.base.DriverError` is retried ``driver_retries`` times on the same pose, then
 pauses the run with the message (logged in the session's ``events``); after :meth:`resume` the
-pose is tried again. With ``return_on_pause`` :meth:`Runner.run` returns when paused (so the
-thread that owns the drivers is free, e.g. to reconnect them with :meth:`Runner.set_devices`);
-calling :meth:`Runner.run` again continues.
+pose is tried again. ``max_skips_in_a_row`` skipped poses in a row (a sensor stuck out of range,
+a camera that sees nothing) also pause the run; the last of them is not stored, so it is
+measured again after :meth:`resume` (0: never pause for skips). With ``return_on_pause``
+:meth:`Runner.run` returns when paused (so the thread that owns the drivers is free, e.g. to
+reconnect them with :meth:`Runner.set_devices`); calling :meth:`Runner.run` again continues.
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ class RunnerConfig:
     min_quality: float = 0.0
     retry_skipped: bool = False
     return_on_pause: bool = False
+    max_skips_in_a_row: int = 3
 
     def __post_init__(self) -> None:
         from calib_core.errors import InputError
@@ -60,7 +63,8 @@ class RunnerConfig:
         if self.samples_per_pose < 1:
             raise InputError(f"samples per pose must be >= 1, got {self.samples_per_pose}")
         for name in ("settle_s", "retry_delay_s", "driver_retry_delay_s", "max_retries",
-                     "driver_retries", "pose_tolerance_mm", "pose_tolerance_deg"):
+                     "driver_retries", "pose_tolerance_mm", "pose_tolerance_deg",
+                     "max_skips_in_a_row"):
             if not getattr(self, name) >= 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
 
@@ -94,6 +98,10 @@ class _Invalid(Exception):
 
 class _Aborted(Exception):
     pass
+
+
+class _SkipStreak(Exception):
+    """Too many poses in a row could not be measured: a device is probably at fault."""
 
 
 def describe_device(device: object) -> str:
@@ -139,6 +147,7 @@ class Runner:
         self._grid = session.grid
         self._total = len(self._grid)
         self._pose_times: list[float] = []
+        self._skips_in_a_row = 0
 
     # ---- control (any thread) ------------------------------------------------------------
     @property
@@ -209,6 +218,11 @@ class Runner:
                     self._measure_pose(index)
                 except _Aborted:
                     continue
+                except _SkipStreak as exc:
+                    message = f"pose {index}: {exc}"
+                    self.session.log_event("skip-streak", message)
+                    self.pause(f"{message}; fix the device, then resume")
+                    continue
                 except DriverError as exc:
                     message = f"pose {index}: {exc}"
                     self.session.log_event("driver-error", message)
@@ -266,6 +280,15 @@ class Runner:
                     raise
                 self._wait(cfg.driver_retry_delay_s)
         self._wait(0.0)  # an abort during the reading drops the sample
+        if sample.ok:
+            self._skips_in_a_row = 0
+        else:
+            self._skips_in_a_row += 1
+            if 0 < cfg.max_skips_in_a_row <= self._skips_in_a_row:
+                self._skips_in_a_row = 0
+                raise _SkipStreak(f"{cfg.max_skips_in_a_row} poses in a row could not be "
+                                  f"measured (last: {sample.reason}); the pose is not stored "
+                                  "and will be measured again")
         self.session.add_sample(sample)
         self._last = sample
         self._pose_times.append(time.monotonic() - started)

@@ -53,6 +53,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--retries", type=int, metavar="N",
                    help="re-reads of an invalid measurement before the pose is skipped "
                         "(default 2)")
+    p.add_argument("--max-skips-in-a-row", type=int, metavar="N",
+                   help="stop when N poses in a row cannot be measured (a faulty device; the "
+                        "last one is measured again on --resume); 0: never (default 3)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     sim = p.add_argument_group("simulated workcell")
     sim.add_argument("--sim", action="store_true",
@@ -280,9 +283,11 @@ def run(args: argparse.Namespace) -> int:
         "settle_s", 0.3 if hardware else 0.0)
     retries = args.retries if args.retries is not None else settings.get("max_retries", 2)
     seed = int(settings.get("seed", args.seed or 0))
+    streak = args.max_skips_in_a_row if args.max_skips_in_a_row is not None else \
+        settings.get("max_skips_in_a_row", 3)
     config = RunnerConfig(samples_per_pose=int(samples), settle_s=float(settle),
                           max_retries=int(retries), retry_skipped=args.retry_skipped,
-                          return_on_pause=True)
+                          return_on_pause=True, max_skips_in_a_row=int(streak))
     noise: dict[str, float] = {}
     try:
         if hardware:
@@ -309,6 +314,7 @@ def run(args: argparse.Namespace) -> int:
                 settings={"mode": "hardware" if hardware else "sim", "seed": seed,
                           "samples_per_pose": config.samples_per_pose,
                           "settle_s": config.settle_s, "max_retries": config.max_retries,
+                          "max_skips_in_a_row": config.max_skips_in_a_row,
                           "grid": args.grid or "paper", "workcell_source": source})
         else:
             session.log_event("resume", f"resumed with {json.dumps(vars(args), default=str)}")

@@ -360,3 +360,24 @@ def test_grid_outside_soft_limits_is_refused_before_anything(tmp_path: Path) -> 
     assert r.returncode == 2
     assert r.stderr == ("error: --grid cannot change on --resume: the session file keeps "
                         "its own\n")
+
+
+def test_skips_in_a_row_pause_and_the_last_pose_is_measured_again(tmp_path: Path) -> None:
+    grid = paper_grid()
+    _, robot, sensor, camera = _devices()
+    stuck = FlakySensor(sensor, robot, bad=set(range(6, 42)), once=set(), grid=grid)
+    with Session.create(tmp_path / "s.db", grid) as session:
+        runner = Runner(session, robot, stuck, camera,
+                        RunnerConfig(samples_per_pose=1, max_retries=1, return_on_pause=True))
+        result = runner.run()
+        assert (result.state, result.done, result.skipped) == ("paused", 8, 2)
+        assert result.message == (
+            "pose 8: 3 poses in a row could not be measured (last: sensor out-of-range "
+            "(+99.999) (2 attempt(s))); the pose is not stored and will be measured again; "
+            "fix the device, then resume")
+        stuck.bad = set()  # the operator fixed the sensor
+        runner.resume()
+        result = runner.run()
+        assert (result.state, result.done, result.skipped) == ("finished", 42, 2)
+        assert session.stored_indices("skipped") == {6, 7}
+        assert [e[1] for e in session.events()].count("skip-streak") == 1
