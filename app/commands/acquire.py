@@ -143,7 +143,7 @@ def _sim_devices(args: argparse.Namespace, workcell_text: str, source: str,
     sensor = devices.SimSensor(world)
     rendered = getattr(devices, "SimCamera", None)
     if args.sim_camera == "rendered" and rendered is not None:
-        camera = rendered(world)
+        camera = rendered(world, seed=seed)
     else:
         camera = devices.SimCameraDirect(world)
     return workcell, robot, sensor, camera

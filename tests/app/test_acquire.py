@@ -381,3 +381,23 @@ def test_skips_in_a_row_pause_and_the_last_pose_is_measured_again(tmp_path: Path
         assert (result.state, result.done, result.skipped) == ("finished", 42, 2)
         assert session.stored_indices("skipped") == {6, 7}
         assert [e[1] for e in session.events()].count("skip-streak") == 1
+
+
+def test_cli_session_with_rendered_camera_solves_to_the_workcell_truth(tmp_path: Path) -> None:
+    """The default simulated session (frames rendered and measured by the OpenCV detector),
+    then ``lasercal solve SESSION.db --json``: H within 3 reported sigma of the truth."""
+    import json
+
+    db = tmp_path / "s.db"
+    r = _lasercal("acquire", "--session", str(db), "--quiet", "--seed", "1")
+    assert r.returncode == 0, r.stderr
+    with Session.open(db, readonly=True) as s:
+        assert "SimCamera" in s.meta_json("drivers")["camera"]
+        assert "SimCameraDirect" not in s.meta_json("drivers")["camera"]
+    r = _lasercal("solve", str(db), "--json")
+    assert r.returncode == 0, r.stderr
+    cal = json.loads(r.stdout)
+    truth = load_workcell().truth()
+    assert cal["n_used"] == 42
+    for name, value in cal["params"].items():
+        assert abs(value - truth[name]) < 3 * cal["sigma"][name], name
