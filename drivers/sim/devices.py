@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import math
 import threading
 import time
+from collections.abc import Iterable
 
 import numpy as np
 
@@ -14,7 +16,19 @@ from drivers.base import (
     SoftLimits,
     SpotMeasurement,
 )
-from drivers.sim.world import SimWorld
+from drivers.camera_cv import (
+    DetectorConfig,
+    PixelToPlate,
+    SpotDetection,
+    calibrate_chessboard,
+    detect_spot,
+    measure_average,
+)
+from drivers.sim.render import Chessboard, FrameRenderer, Spot
+from drivers.sim.world import SimWorld, pose_rotation
+
+#: Faults a :class:`SimCamera` can inject into its frames.
+CAMERA_FAULTS = frozenset({"no_spot", "saturate", "second_reflection"})
 
 
 class SimRobot:
@@ -114,3 +128,87 @@ class SimCameraDirect:
 
     def close(self) -> None:
         pass
+
+
+class SimCamera:
+    """The simulated bottom camera: renders frames and measures them with the OpenCV detector.
+
+    Each frame shows the spot where the world's camera measurement puts it (true spot plus the
+    ``[noise] camera`` error, projected through the lens model), with speckle and read noise;
+    :func:`drivers.camera_cv.detect_spot` finds it against a laser-off background frame and
+    ``mapping`` turns pixels into plate mm. ``mapping`` starts as the exact inverse of the
+    camera model; :meth:`calibrate` replaces it by a chessboard fit, as on the hardware.
+    ``faults`` (a subset of :data:`CAMERA_FAULTS`) injects an empty frame, a saturated spot or
+    a second reflection.
+    """
+
+    def __init__(self, world: SimWorld, seed: int | None = 0,
+                 config: DetectorConfig | None = None, average: int = 1,
+                 faults: Iterable[str] = ()) -> None:
+        self.world = world
+        self.spec = world.workcell.camera
+        self.renderer = FrameRenderer(self.spec, seed)
+        self.config = config or DetectorConfig(max_aspect=max(1.3, 1.25 * self.spec.spot_aspect))
+        self.average = max(1, int(average))
+        self.faults: set[str] = set()
+        self.set_faults(faults)
+        self.background = self.renderer.render()
+        self.mapping = PixelToPlate(self.spec.camera_matrix(), self.spec.dist_coeffs(),
+                                    np.linalg.inv(self.spec.homography()))
+        self.last_truth_px: np.ndarray | None = None
+        self._closed = False
+
+    def set_faults(self, faults: Iterable[str]) -> None:
+        faults = set(faults)
+        unknown = faults - CAMERA_FAULTS
+        if unknown:
+            raise ValueError(f"unknown camera fault(s) {sorted(unknown)}; "
+                             f"expected {sorted(CAMERA_FAULTS)}")
+        self.faults = faults
+
+    def default_board(self) -> Chessboard:
+        """A 16 x 12 (inner corners) chessboard of 1 mm squares centred on the field of view."""
+        pattern, square = (16, 12), 1.0
+        c = np.asarray(self.spec.fov_centre)
+        origin = c - square * np.array([(pattern[0] - 1) / 2, (pattern[1] - 1) / 2])
+        return Chessboard(pattern, square, (float(origin[0]), float(origin[1])))
+
+    def calibrate(self, board: Chessboard | None = None) -> PixelToPlate:
+        """Chessboard step: render the board on the plate, fit ``mapping`` (lens intrinsics
+        known from the camera model, homography from the board's corners)."""
+        board = board or self.default_board()
+        image = self.renderer.render_chessboard(board)
+        self.mapping = calibrate_chessboard(image, board.pattern, board.corners_mm(),
+                                            self.spec.camera_matrix(), self.spec.dist_coeffs())
+        return self.mapping
+
+    def _spot_angle(self) -> float:
+        """Image angle of the spot's major axis: the beam's tilt direction on the plate."""
+        wc = self.world.workcell
+        direction = pose_rotation(self.world.true_pose) @ wc.beam.u_prime
+        return math.degrees(math.atan2(direction[1], direction[0])) + self.spec.rotation_deg
+
+    def grab(self) -> np.ndarray:
+        if self._closed:
+            raise DriverError("simulated camera is closed")
+        xy = self.world.camera_spot()
+        self.last_truth_px = None
+        if xy is None or "no_spot" in self.faults:
+            return self.renderer.render()
+        uv = self.spec.project(xy)[0]
+        self.last_truth_px = uv
+        peak = self.spec.spot_peak * (4.0 if "saturate" in self.faults else 1.0)
+        spots = [self.renderer.spot_for(float(uv[0]), float(uv[1]), peak, self._spot_angle())]
+        if "second_reflection" in self.faults:
+            spots.append(Spot(float(uv[0]) + 40.0, float(uv[1]) + 25.0, 0.6 * peak,
+                              self.spec.spot_sigma_px * 1.3))
+        return self.renderer.render(spots)
+
+    def detect(self) -> SpotDetection:
+        return detect_spot(self.grab(), self.background, self.config)
+
+    def measure_spot(self) -> SpotMeasurement:
+        return measure_average(self.detect, self.mapping, self.average)
+
+    def close(self) -> None:
+        self._closed = True

@@ -25,6 +25,14 @@ from drivers.base import SoftLimits
 DEFAULT_WORKCELL = "workcell_default.toml"
 
 
+def apply_homography(h: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """``(x', y') = (h0 . (x, y, 1), h1 . (x, y, 1)) / h2 . (x, y, 1)`` for points (n, 2)."""
+    x, y = xy[:, 0], xy[:, 1]
+    w = h[2, 0] * x + h[2, 1] * y + h[2, 2]
+    return np.column_stack([(h[0, 0] * x + h[0, 1] * y + h[0, 2]) / w,
+                            (h[1, 0] * x + h[1, 1] * y + h[1, 2]) / w])
+
+
 @dataclass(frozen=True)
 class Beam:
     """True beam in the flange frame: ``T = (x_t, y_t, z_t)`` and ``u' = gain * (a, b, c)``.
@@ -171,10 +179,24 @@ class CameraSpec:
         ``p_ideal = H (x, y, 1)``, ``q = (p_ideal - c) / f``, ``p = c + f q (1 + k1 |q|^2)``.
         """
         xy = np.atleast_2d(np.asarray(xy, dtype=float))
-        ph = np.column_stack([xy, np.ones(len(xy))]) @ self.homography().T
-        q = (ph[:, 0:2] / ph[:, 2:3] - self.principal_point) / self.focal_px
+        q = (apply_homography(self.homography(), xy) - self.principal_point) / self.focal_px
         r2 = np.sum(q * q, axis=1, keepdims=True)
         return self.principal_point + self.focal_px * q * (1.0 + self.k1 * r2)
+
+    def unproject(self, uv: np.ndarray, iterations: int = 5) -> np.ndarray:
+        """Distorted pixels ``(n, 2)`` to plate mm ``(n, 2)``, the inverse of :meth:`project`.
+
+        Undistort by the fixed point ``q <- q_d / (1 + k1 |q|^2)`` (``q_d = (p - c) / f``),
+        then ``H^-1``.
+        """
+        uv = np.atleast_2d(np.asarray(uv, dtype=float))
+        qd = (uv - self.principal_point) / self.focal_px
+        q = qd.copy()
+        for _ in range(iterations):  # converges by a factor ~2 |k1| |q|^2 per step
+            r2 = np.einsum("ij,ij->i", q, q)[:, None]
+            np.divide(qd, 1.0 + self.k1 * r2, out=q)
+        ideal = self.principal_point + self.focal_px * q
+        return apply_homography(np.linalg.inv(self.homography()), ideal)
 
     def in_view(self, uv: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """True for pixels ``(n, 2)`` at least ``margin`` px inside the image."""
