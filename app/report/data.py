@@ -414,14 +414,20 @@ def section_from_json(data: Mapping[str, Any], source: str) -> dict[str, Any]:
     def text(v: Any) -> str:
         if isinstance(v, bool) or v is None:
             return "n/a" if v is None else str(v)
+        if isinstance(v, str):
+            return v
         if isinstance(v, int | float):
             return f"{v:.6g}"
-        if isinstance(v, list | tuple) and len(v) <= 9 and all(
+        if isinstance(v, list | tuple) and all(
                 isinstance(x, int | float) and not isinstance(x, bool) for x in v):
-            return "(" + ", ".join(f"{x:.6g}" for x in v) + ")"
+            digits = 6 if len(v) <= 9 else 4
+            return "(" + ", ".join(f"{x:.{digits}g}" for x in v) + ")"
         if isinstance(v, list | tuple) and all(isinstance(x, str) for x in v):
-            return ", ".join(v) or "none"
-        return json.dumps(_json_safe(v))[:300]
+            return "; ".join(v) or "none"
+        if isinstance(v, list | tuple) and all(
+                isinstance(x, Mapping) and "name" in x for x in v):
+            return "; ".join(f"{x['name']}: {x.get('reason', '')}" for x in v) or "none"
+        return json.dumps(_json_safe(v))[:400]
 
     tables: list[dict[str, Any]] = []
     used: set[str] = set()

@@ -89,8 +89,6 @@ class _Layout:
 
 
 def _table(lay: _Layout, b: Table) -> None:
-    if b.caption:
-        lay.text(MARGIN, b.caption, BODY, weight="bold")
     cells = [list(b.columns)] + [[_text(c) for c in row] for row in b.rows]
     widths = [max(len(r[j]) for r in cells) for j in range(len(b.columns))]
     char = MONO_ADVANCE * MONO / 72
@@ -102,19 +100,31 @@ def _table(lay: _Layout, b: Table) -> None:
     char = MONO_ADVANCE * size / 72
     numeric = [j > 0 and all(r[j][:1] in "-0123456789n" for r in cells[1:])
                for j in range(len(widths))]
-    for i, row in enumerate(cells):
-        lay.need(size * 1.5 / 72)
+    line = size * 1.5 / 72
+    caption = BODY * 1.45 / 72 if b.caption else 0.0
+    lay.need(caption + line * min(len(cells), 4))  # no orphaned caption or header
+    if b.caption:
+        lay.text(MARGIN, b.caption, BODY, weight="bold")
+
+    def row_ops(i: int, row: list[str]) -> None:
         for j, s in enumerate(row):
             flagged = i > 0 and (i - 1, j) in b.flagged
-            x = MARGIN + starts[j] * char
             text = s.rjust(widths[j]) if numeric[j] else s
-            lay.pages[-1].append(_cell_op(x, lay.y, text, size, i == 0, flagged))
-        lay.y -= size * 1.5 / 72
+            lay.pages[-1].append(_cell_op(MARGIN + starts[j] * char, lay.y, text, size,
+                                          i == 0, flagged))
+        lay.y -= line
         if i == 0:
             y = lay.y + size * 0.25 / 72
             lay.pages[-1].append(lambda fig, y=y, w=pos * char: fig.add_artist(Rectangle(
                 (MARGIN / PAGE_W, y / PAGE_H), w / PAGE_W, 0.6 / 72 / PAGE_H,
                 transform=fig.transFigure, color="#888")))
+
+    row_ops(0, cells[0])
+    for i, row in enumerate(cells[1:], start=1):
+        if lay.y - line < BOTTOM:
+            lay.need(2 * line)
+            row_ops(0, cells[0])  # repeat the header on the new page
+        row_ops(i, row)
     lay.gap(0.08)
 
 
