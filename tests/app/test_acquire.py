@@ -98,11 +98,17 @@ def test_invalid_readings_are_retried_then_skipped_with_reason(tmp_path: Path) -
         result = Runner(session, robot, flaky, camera,
                         RunnerConfig(samples_per_pose=2, max_retries=2)).run()
         samples = {s.pose_index: s for s in session.samples()}
-    assert (result.done, result.skipped) == (42, 1)
-    assert samples[3].status == "skipped" and samples[3].d is None
-    assert samples[3].reason == "sensor out-of-range (+99.999) (3 attempt(s))"
-    assert samples[7].ok and samples[7].attempts == 2 and samples[7].n_readings == 2
-    assert len(read_session_frame(tmp_path / "s.db")) == 41
+        assert (result.done, result.skipped) == (42, 1)
+        assert samples[3].status == "skipped" and samples[3].d is None
+        assert samples[3].reason == "sensor out-of-range (+99.999) (3 attempt(s))"
+        assert samples[7].ok and samples[7].attempts == 2 and samples[7].n_readings == 2
+        assert len(read_session_frame(tmp_path / "s.db")) == 41
+        flaky.bad = set()  # fixed: measure the skipped pose again, nothing else
+        reads = flaky.reads
+        result = Runner(session, robot, flaky, camera,
+                        RunnerConfig(samples_per_pose=2, retry_skipped=True)).run()
+        assert (result.done, result.skipped) == (42, 0) and flaky.reads == reads + 2
+        assert session.samples()[7] == samples[7]
 
 
 class NoSpotCamera(SimCameraDirect):
