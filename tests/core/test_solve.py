@@ -167,3 +167,17 @@ def test_calibration_json_round_trip() -> None:
     np.testing.assert_allclose(back.covariance, result.covariance)
     with pytest.raises(InputError, match="missing key 'params'"):
         BeamCalibration.from_json_dict({"model": "schoenflies"})
+
+
+def test_general_model_sigma_matches_monte_carlo() -> None:
+    """6-dof flange, 9 unknowns: 150 repeated experiments, scatter / sigma within 0.8-1.25."""
+    grid, q = tilted_grid(np.random.default_rng(5))
+    truth = seed_truth(delta=1.5)
+    rng = np.random.default_rng(200)
+    values, sigmas = [], []
+    for _ in range(150):
+        r = solve(as_dataset(simulate(truth, grid, NOISE, rng, quaternions=q)))
+        values.append(r.values)
+        sigmas.append(r.sigma)
+    ratio = np.std(values, axis=0) / np.sqrt(np.mean(np.square(sigmas), axis=0))
+    assert np.all((ratio > 0.8) & (ratio < 1.25)), dict(zip(r.names, ratio.round(3), strict=True))
