@@ -209,15 +209,8 @@ class Session:
                              "or choose another file")
         if not path.parent.is_dir():
             raise InputError(f"{path}: directory {path.parent} does not exist")
-        try:
-            conn = sqlite3.connect(path, isolation_level=None, check_same_thread=False,
-                                   timeout=10.0)
-        except sqlite3.Error as exc:
-            raise InputError(f"{path}: cannot create the session file ({exc})") from None
-        conn.row_factory = sqlite3.Row
-        session = cls(path, conn, readonly=False)
-        session._configure()
         meta = {
+            **dict(extra_meta or {}),
             "schema": SCHEMA,
             "created": datetime.now(UTC).isoformat(timespec="seconds"),
             "software": json.dumps(software_versions()),
@@ -226,12 +219,30 @@ class Session:
             "noise": json.dumps(dict(noise or {})),
             "grid": grid.name,
             "settings": json.dumps(dict(settings or {})),
-            **dict(extra_meta or {}),
         }
-        with session._transaction() as c:
-            c.executemany("INSERT INTO meta(key, value) VALUES (?, ?)", meta.items())
-            c.executemany("INSERT INTO poses VALUES (?, ?, ?, ?, ?)",
-                          [(i, *grid.pose(i)) for i in range(len(grid))])
+        try:
+            conn = sqlite3.connect(path, isolation_level=None, check_same_thread=False,
+                                   timeout=10.0)
+        except sqlite3.Error as exc:
+            raise InputError(f"{path}: cannot create the session file ({exc})") from None
+        conn.row_factory = sqlite3.Row
+        session = cls(path, conn, readonly=False)
+        try:
+            session._pragmas()
+            with session._transaction() as c:  # all or nothing: tables, meta, grid
+                for statement in _DDL.split(";"):
+                    if statement.strip():
+                        c.execute(statement)
+                c.executemany("INSERT INTO meta(key, value) VALUES (?, ?)", meta.items())
+                c.executemany("INSERT INTO poses VALUES (?, ?, ?, ?, ?)",
+                              [(i, *grid.pose(i)) for i in range(len(grid))])
+        except BaseException as exc:
+            conn.close()
+            for suffix in ("", "-wal", "-shm"):
+                Path(f"{path}{suffix}").unlink(missing_ok=True)
+            if isinstance(exc, sqlite3.Error):
+                raise InputError(f"{path}: cannot create the session file ({exc})") from None
+            raise
         return session
 
     @classmethod
@@ -276,11 +287,16 @@ class Session:
                 raise InputError(f"{path}: cannot write the session file ({exc})") from None
         return session
 
-    def _configure(self) -> None:
+    def _pragmas(self) -> None:
+        """WAL journal, a full sync at every commit (a committed sample survives a power cut)."""
         with self._lock:
             self._conn.execute("PRAGMA journal_mode = WAL")
             self._conn.execute("PRAGMA synchronous = FULL")
             self._conn.execute("PRAGMA busy_timeout = 10000")
+
+    def _configure(self) -> None:
+        self._pragmas()
+        with self._lock:
             self._conn.executescript(_DDL)
 
     def close(self) -> None:

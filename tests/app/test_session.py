@@ -174,3 +174,19 @@ def test_nan_is_stored_as_null(tmp_path: Path) -> None:
         assert back.quality is None and back.readback is None
         assert read_session_frame(tmp_path / "s.db")["x_o"].iloc[0] == 0.0  # commanded
         assert not math.isnan(back.d)
+
+
+def test_failed_create_leaves_no_file(tmp_path: Path) -> None:
+    class BadGrid(type(paper_grid())):
+        def pose(self, index: int):
+            if index == 2:
+                raise InputError("grid pose 2: broken")
+            return super().pose(index)
+
+    path = tmp_path / "s.db"
+    with pytest.raises(InputError, match="broken"):
+        Session.create(path, BadGrid(paper_grid().poses, "bad"))
+    assert list(tmp_path.iterdir()) == []
+    Session.create(path, paper_grid(), extra_meta={"schema": "x", "operator": "ann"}).close()
+    with Session.open(path) as s:
+        assert s.meta["schema"] == "lasercal-session/1" and s.meta["operator"] == "ann"
