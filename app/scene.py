@@ -148,6 +148,9 @@ class WorkcellScene:
         self._server = server
         self.workcell = workcell
         sc.set_up_direction("+z")
+        # no HDRI (it would be fetched from the internet) and no shadows (slow in software GL)
+        sc.configure_environment_map(hdri=None)
+        sc.configure_default_lights(enabled=True, cast_shadow=False)
         cam = server.initial_camera
         cam.look_at = (10.0, 80.0, 10.0)
         cam.position = (150.0, -60.0, 140.0)

@@ -27,7 +27,7 @@ from drivers.base import DriverError, FlangePose, MotionRefused, SensorReading
 #: Simulated move duration when the workcell TOML says 0 (makes the motion visible).
 SIM_MOVE_TIME_S = 0.05
 #: Live view: at most this many scene updates per second.
-LIVE_MAX_HZ = 40.0
+LIVE_MAX_HZ = 30.0
 _LEVEL_COLOR = {"info": "blue", "warning": "yellow", "error": "red", "success": "green"}
 
 
