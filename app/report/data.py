@@ -69,7 +69,7 @@ class Report:
         out = self.calibration.to_json_dict()
         if self.mode == "evaluated":
             out["residuals"] = self.stats["evaluated"]
-        out["report"] = _json_safe({
+        out["report"] = {
             "meta": {k: v for k, v in self.meta.items()},
             "residuals": self.stats,
             "expected_rms": self.expected,
@@ -77,8 +77,8 @@ class Report:
             "verdict": self.verdict,
             "warnings_explained": [{"warning": w, "explanation": e} for w, e in self.warnings],
             "sections": self.sections,
-        })
-        return out
+        }
+        return _json_safe(out)
 
 
 def _json_safe(value: Any) -> Any:

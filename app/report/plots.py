@@ -119,10 +119,14 @@ def _clipped(ax, x: np.ndarray, y: np.ndarray, sets: np.ndarray, lim: float) -> 
         if m.any():
             ax.scatter(x[m], y[m], s=12, color=COLORS[s], label=LABELS[s])
     m = sets == "outlier"
-    if m.any():
-        yc = np.clip(y[m], -lim, lim)
-        ax.scatter(x[m], yc, s=40, marker="^", color=COLORS["outlier"],
-                   label="outlier (clipped)")
+    inside = m & (np.abs(y) <= lim)
+    off = m & (np.abs(y) > lim)
+    if inside.any():
+        ax.scatter(x[inside], y[inside], s=40, marker="x", color=COLORS["outlier"],
+                   label="outlier")
+    if off.any():
+        ax.scatter(x[off], np.clip(y[off], -lim, lim), s=40, marker="^",
+                   color=COLORS["outlier"], label="outlier (off scale)")
     ax.set_ylim(-lim * 1.08, lim * 1.08)
     ax.axhline(0, color="#777", linewidth=0.8)
     ax.grid(alpha=0.3)

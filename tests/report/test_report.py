@@ -275,6 +275,30 @@ def test_given_calibration_is_evaluated_not_refitted(csv_report: dict, session_r
     assert doc["report"]["verdict"]["status"] == "review"
 
 
+def test_minimal_calibration_file_and_measure_section(csv_report: dict, tmp_path: Path) -> None:
+    """A hand-written calibration (model, params, sigma only) and a measure result section."""
+    ref = csv_report["solved"].to_json_dict()
+    calib = tmp_path / "H.json"
+    calib.write_text(json.dumps({k: ref[k] for k in ("model", "params", "sigma")}))
+    plane = tmp_path / "plane.json"
+    plane.write_text(json.dumps({"alpha": 1.5e-3, "beta": -2.5e-3, "offset": 0.125,
+                                 "normal": [0.0015, -0.0025, 1.0], "rms": 0.0042,
+                                 "n_points": 25, "sigma": {"alpha": 1e-4, "beta": 2e-4,
+                                                           "offset": 0.003}}))
+    out = tmp_path / "r"
+    assert main(["report", str(csv_report["src"]), "--calib", str(calib), "--measure",
+                 str(plane), "--out", str(out)]) == 0
+    text = (out / "calibration.json").read_text()
+    doc = json.loads(text, parse_constant=lambda c: pytest.fail(f"non-JSON constant {c}"))
+    (section,) = doc["report"]["sections"]
+    assert section["title"] == "Plane identification"
+    assert dict(section["rows"])["sigma.offset"] == "0.003"
+    html = (out / "report.html").read_text()
+    assert "Plane identification" in html and "0.125" in html
+    assert doc["condition_number"] is None and doc["report"]["meta"]["calibration_mode"] == \
+        "evaluated"
+
+
 # ---- the noise floor -------------------------------------------------------------------------
 
 def test_expected_rms_matches_simulated_scatter() -> None:
