@@ -103,6 +103,7 @@ class FrameRenderer:
             for _ in range(NOISE_POOL)
         ]
         self._plate_xy: np.ndarray | None = None
+        self._pool: list[np.ndarray] | None = None
 
     def spot_for(self, u: float, v: float, peak: float | None = None,
                  angle_deg: float = 0.0) -> Spot:
@@ -117,13 +118,20 @@ class FrameRenderer:
         du, dv = (int(x) for x in self.rng.integers(0, NOISE_MARGIN, size=2))
         return pool[dv:dv + h, du:du + w]
 
-    def add_spot(self, image: np.ndarray, spot: Spot, speckle: float | None = None) -> None:
-        """Add ``spot`` (8-bit grey scale) into the float image in place, over a +-6 sigma box."""
-        h, w = image.shape
-        s_major = spot.sigma_minor * spot.aspect
-        half = math.ceil(6.0 * s_major)
-        u0, u1 = max(0, math.floor(spot.u) - half), min(w, math.floor(spot.u) + half + 2)
-        v0, v1 = max(0, math.floor(spot.v) - half), min(h, math.floor(spot.v) + half + 2)
+    def spot_box(self, spot: Spot) -> tuple[int, int, int, int]:
+        """Pixel box ``(u0, v0, u1, v1)`` (end exclusive) holding the spot to +-6 sigma."""
+        w, h = self.camera.resolution
+        half = math.ceil(6.0 * spot.sigma_minor * spot.aspect)
+        return (max(0, math.floor(spot.u) - half), max(0, math.floor(spot.v) - half),
+                min(w, math.floor(spot.u) + half + 2), min(h, math.floor(spot.v) + half + 2))
+
+    def add_spot(self, image: np.ndarray, spot: Spot, speckle: float | None = None,
+                 origin: tuple[int, int] = (0, 0)) -> None:
+        """Add ``spot`` (8-bit grey scale) in place into the float ``image`` whose pixel
+        ``[0, 0]`` is the frame's ``(u, v) = origin``, over a +-6 sigma box."""
+        u0, v0, u1, v1 = self.spot_box(spot)
+        u0, u1 = max(u0, origin[0]), min(u1, origin[0] + image.shape[1])
+        v0, v1 = max(v0, origin[1]), min(v1, origin[1] + image.shape[0])
         if u0 >= u1 or v0 >= v1:
             return
         uu = np.arange(u0, u1, dtype=np.float64) - spot.u
@@ -133,21 +141,47 @@ class FrameRenderer:
         ca, sa = math.cos(a), math.sin(a)
         p = ca * du + sa * dv  # along the major axis
         q = -sa * du + ca * dv
+        s_major = spot.sigma_minor * spot.aspect
         g = np.exp(-0.5 * ((p / s_major) ** 2 + (q / spot.sigma_minor) ** 2))
         k = self.camera.speckle if speckle is None else speckle
         if k > 0:
             g *= 1.0 + k * speckle_field(self.rng, g.shape)
-        image[v0:v1, u0:u1] += (spot.peak * self.scale * g).astype(np.float32)
+        image[v0 - origin[1]:v1 - origin[1], u0 - origin[0]:u1 - origin[0]] += (
+            spot.peak * self.scale * g).astype(np.float32)
 
     def render(self, spots: list[Spot] | tuple[Spot, ...] = (), noise: bool = True,
                speckle: float | None = None) -> np.ndarray:
-        """A frame (H, W) with the given spots (none: a background frame, laser off)."""
-        image = self.base.copy()
-        if noise:
-            image += self._read_noise()
+        """A frame (H, W) with the given spots (none: a background frame, laser off).
+
+        With spots and noise, the frame outside the spots' box is a pre-rendered noisy
+        background (one of :data:`NOISE_POOL`) and the box gets fresh read noise: about ten
+        times faster than rendering the whole frame, the same statistics where it matters.
+        """
+        if not spots or not noise:
+            image = self.base.copy()
+            if noise:
+                image += self._read_noise()
+            for spot in spots:
+                self.add_spot(image, spot, speckle)
+            return self._quantise(image)
+        boxes = np.array([self.spot_box(s) for s in spots])
+        u0, v0 = (int(x) for x in boxes[:, 0:2].min(axis=0))
+        u1, v1 = (int(x) for x in boxes[:, 2:4].max(axis=0))
+        frame = self._background_pool()[int(self.rng.integers(NOISE_POOL))].copy()
+        if u0 >= u1 or v0 >= v1:
+            return frame
+        patch = self.base[v0:v1, u0:u1] + self.rng.standard_normal(
+            (v1 - v0, u1 - u0), dtype=np.float32) * np.float32(
+                self.camera.sensor_noise * self.scale)
         for spot in spots:
-            self.add_spot(image, spot, speckle)
-        return self._quantise(image)
+            self.add_spot(patch, spot, speckle, origin=(u0, v0))
+        frame[v0:v1, u0:u1] = self._quantise(patch)
+        return frame
+
+    def _background_pool(self) -> list[np.ndarray]:
+        if self._pool is None:
+            self._pool = [self.render() for _ in range(NOISE_POOL)]
+        return self._pool
 
     def _quantise(self, image: np.ndarray) -> np.ndarray:
         np.clip(image, 0, self.full_scale, out=image)
