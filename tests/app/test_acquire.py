@@ -229,6 +229,11 @@ def test_acquire_export_and_refusals(tmp_path: Path) -> None:
     r = _lasercal("export", str(db), "--csv", str(out))
     assert r.returncode == 0, r.stderr
     exported = load_dataset(out)  # the solve format
+    r = _lasercal("export", str(db), "--csv", "-", "--all")
+    full = pd.read_csv(io.StringIO(r.stdout), comment="#")
+    assert r.returncode == 0 and len(full) == 42 and set(full["status"]) == {"ok"}
+    assert {"cmd_x", "reason", "d_std", "n_readings", "timestamp"} <= set(full.columns)
+    assert (full["n_readings"] == 2).all()
     frame = read_session_frame(db)
     np.testing.assert_allclose(exported.d, frame["d"], rtol=1e-8)
     assert exported.extra["pose_index"].astype(int).tolist() == list(range(42))
