@@ -226,7 +226,8 @@ class Runner:
                 except DriverError as exc:
                     message = f"pose {index}: {exc}"
                     self.session.log_event("driver-error", message)
-                    self.pause(f"{message}; fix the device, then resume")
+                    if self._go.is_set():  # else the operator's pause message stands
+                        self.pause(f"{message}; fix the device, then resume")
                     continue
                 k += 1
             return self._finish("finished", "")
@@ -276,8 +277,9 @@ class Runner:
                 sample = self._read_valid(index, target, readback)
                 break
             except DriverError:
-                if attempt == cfg.driver_retries:
-                    raise
+                if (attempt == cfg.driver_retries or not self._go.is_set()
+                        or self._abort.is_set()):
+                    raise  # never move again after a STOP (pause or abort requested)
                 self._wait(cfg.driver_retry_delay_s)
         self._wait(0.0)  # an abort during the reading drops the sample
         if sample.ok:

@@ -412,3 +412,36 @@ def test_cli_session_with_rendered_camera_solves_to_the_workcell_truth(tmp_path:
     assert cal["n_used"] == 42
     for name, value in cal["params"].items():
         assert abs(value - truth[name]) < 3 * cal["sigma"][name], name
+
+
+def test_stop_during_a_move_pauses_without_moving_again(tmp_path: Path) -> None:
+    world, _, sensor, camera = _devices()
+
+    class Counting(SimRobot):
+        moves = 0
+
+        def move_to(self, target: FlangePose) -> FlangePose:
+            Counting.moves += 1
+            return super().move_to(target)
+
+    robot = Counting(world, move_time_s=0.3)
+    with Session.create(tmp_path / "s.db", paper_grid()) as session:
+        runner = Runner(session, robot, sensor, camera,
+                        RunnerConfig(samples_per_pose=1, driver_retries=3,
+                                     return_on_pause=True))
+
+        def stop() -> None:  # what the dashboard's STOP button does
+            runner.pause("STOP pressed by the operator")
+            robot.stop()
+
+        threading.Timer(0.45, stop).start()  # mid-way through the second move
+        t0 = time.monotonic()
+        result = runner.run()
+        assert time.monotonic() - t0 < 0.8
+        assert (result.state, result.done, Counting.moves) == ("paused", 1, 2)
+        assert result.message == "STOP pressed by the operator"
+        assert ("driver-error", "pose 1: motion stopped before reaching the target") in [
+            e[1:] for e in session.events()]
+        runner.resume()
+        robot.move_time_s = 0.0
+        assert runner.run().done == 42
