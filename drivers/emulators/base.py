@@ -133,6 +133,8 @@ class PtyEmulator:
             return
         self._vanish_req.set()
         self._gone.wait(timeout)
+        with self.lock:  # the close itself has finished
+            pass
 
     def replug(self) -> str:
         """After :meth:`vanish`: serve again on a new pty (state kept); returns the new path."""
@@ -145,7 +147,9 @@ class PtyEmulator:
 
     @property
     def gone(self) -> bool:
-        return self._gone.is_set()
+        """True once the port has vanished (waits for a close in progress to finish)."""
+        with self.lock:
+            return self._gone.is_set()
 
     # -- faults and log --------------------------------------------------------------------
     def inject(self, kind: str, count: int = 1, *, match: str | None = None, code: int = 0,
