@@ -9,6 +9,7 @@ a toggle re-solves without robust screening, using exactly the poses switched on
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -36,6 +37,7 @@ class SolveView:
     excluded: frozenset[int] = field(default_factory=frozenset)
     seconds: float = 0.0
     robust: bool = True
+    number: int = 0
 
 
 def solve_frame(frame: pd.DataFrame, excluded: set[int] | frozenset[int], noise: Any,
@@ -84,7 +86,8 @@ def params_table(cal: Any, truth: dict[str, float] | None = None) -> str:
 def summary_markdown(view: SolveView) -> str:
     """Model, points used, condition number, Table-1 residual statistics (µm), warnings."""
     cal = view.calibration
-    lines = [f"**{cal.model}** model: {cal.n_used} of {len(view.pose_index)} poses used "
+    lines = [f"Solve #{view.number}: **{cal.model}** model: {cal.n_used} of "
+             f"{len(view.pose_index)} poses used "
              f"({'robust' if view.robust else 'manual selection'}), condition number "
              f"**{cal.condition_number:.3g}**, solved in {view.seconds * 1000:.0f} ms", "",
              "| residual (µm) | mean abs | rms | max |", "|---|---:|---:|---:|"]
@@ -129,6 +132,8 @@ def run_solve(app: AppState, robust: bool = True) -> SolveView:
         raise InputError("no session: run an acquisition or start with --session FILE.db")
     view = solve_frame(app.session.frame(), app.excluded, app.workcell.noise, robust=robust,
                        source=str(app.session_path))
+    app.solve_count += 1
+    view = dataclasses.replace(view, number=app.solve_count)
     app.calibration = view.calibration
     if robust:
         app.flagged = set(view.flagged)

@@ -120,6 +120,7 @@ class AppState:
         self.messages: deque[tuple[float, str, str, str]] = deque(maxlen=200)
         self.latest: LiveSample | None = None
         self.last_solve_s: float | None = None
+        self.solve_count = 0
         self._listeners: dict[str, list[Callable[[], None]]] = {}
         self._last_push = 0.0
         self._publish_lock = threading.Lock()
@@ -297,6 +298,9 @@ class AppState:
         path = self.session_path
         if path is None or path.exists():
             path = self.new_session_path()
+            if self.session_path is not None:
+                self.notify("session", f"{self.session_path.name} is complete; new samples go "
+                            f"to {path}", "info")
         self.close_session()
         toml = ""
         with contextlib.suppress(Exception):

@@ -280,3 +280,20 @@ def test_status_and_eta_formatting() -> None:
     assert acquire.format_eta(None) == "-"
     assert acquire.format_eta(42.4) == "42 s"
     assert acquire.format_eta(600) == "10.0 min"
+
+
+def test_existing_session_opens_for_review(solved: AppState) -> None:
+    review = AppState(None, load_workcell(None), sim=False, session_path=solved.session_path)
+    review.worker.start()
+    try:
+        review.worker.call("open", lambda: review.open_session(solved.session_path))
+        assert len(review.grid) == 42 and not review.connected
+        points, index = acquire.spots_of_session(review)
+        assert points.shape == (42, 3) and list(index) == list(range(42))
+        view = review.worker.call("solve", lambda: solve.run_solve(review))   # no hardware
+        np.testing.assert_allclose(view.calibration.values, solved.calibration.values,
+                                   rtol=1e-9, atol=1e-12)
+        assert "Solve #1:" in solve.summary_markdown(view)
+    finally:
+        review.worker.stop()
+        review.close_session()
