@@ -30,7 +30,7 @@ from calib_core.calibrate import BeamCalibration, beam_residuals, solve
 from calib_core.grid import paper_grid
 from calib_core.noise import NoiseModel
 from calib_core.stats import axis_statistics
-from tests.core.simdata import as_dataset, seed_grid, seed_truth, simulate
+from tests.core.simdata import as_dataset, seed_grid, seed_truth, simulate, tilted_grid
 
 EXAMPLE = Path("/work/shared/data/example_paper_grid.csv")
 OUTLIER_ROW = 7
@@ -297,6 +297,28 @@ def test_minimal_calibration_file_and_measure_section(csv_report: dict, tmp_path
     assert "Plane identification" in html and "0.125" in html
     assert doc["condition_number"] is None and doc["report"]["meta"]["calibration_mode"] == \
         "evaluated"
+
+
+def test_six_dof_data_single_file_outputs(tmp_path: Path) -> None:
+    """General model (quaternions): --out FILE.html and --out FILE.pdf write just that file."""
+    rng = np.random.default_rng(8)
+    grid, q = tilted_grid(rng)
+    src = tmp_path / "six.csv"
+    simulate(seed_truth(delta=1.5), grid, NoiseModel(), rng, quaternions=q).to_csv(src,
+                                                                                   index=False)
+    assert main(["report", str(src), "--out", str(tmp_path / "six.html")]) == 0
+    assert main(["report", str(src), "--out", str(tmp_path / "six.pdf")]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["six.csv", "six.html", "six.pdf"]
+    ref = solve(load_calibration_data(str(src))).to_json_dict()
+    assert ref["model"] == "general"
+    parsed = parse_html(tmp_path / "six.html")
+    numbers = solver_numbers(ref)
+    assert {"param.z_t.value", "param.delta.sigma"} <= set(parsed.nums)
+    for key, (value, text) in parsed.nums.items():
+        if key in numbers:
+            assert math.isclose(value, numbers[key], rel_tol=1e-12, abs_tol=1e-15), key
+            assert abs(float(text) - numbers[key]) <= shown_tolerance(text) * (1 + 1e-9)
+    assert (tmp_path / "six.pdf").read_bytes().startswith(b"%PDF")
 
 
 # ---- the noise floor -------------------------------------------------------------------------
