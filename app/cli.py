@@ -17,7 +17,7 @@ from calib_core.errors import LasercalError
 
 #: Sub-command modules, in the order ``--help`` lists them.
 COMMANDS: tuple[str, ...] = ("solve", "serve", "acquire", "export", "platform", "measure",
-                             "sensor", "robot", "emulate", "report")
+                             "sensor", "robot", "emulate", "report", "camera")
 
 
 def one_line(text: str) -> str:

@@ -23,6 +23,8 @@ from drivers.sim.workcell import CameraSpec
 
 #: Number of pre-drawn read-noise images; a frame uses a random window of one of them.
 NOISE_POOL = 4
+#: Seed of the plate texture (fixed: every frame of one cell sees the same plate).
+TEXTURE_SEED = 20150802
 #: Margin of the noise images around the frame (px), the range of the random window offset.
 NOISE_MARGIN = 64
 
@@ -85,7 +87,7 @@ def speckle_field(rng: np.random.Generator, shape: tuple[int, int],
 
 
 class FrameRenderer:
-    """Renders frames of one camera; fixed background texture, fresh noise per frame."""
+    """Renders frames of one camera; fixed plate texture, noise and speckle from ``seed``."""
 
     def __init__(self, camera: CameraSpec, seed: int | None = 0) -> None:
         self.camera = camera
@@ -94,7 +96,9 @@ class FrameRenderer:
         self.scale = (2**camera.bit_depth - 1) / 255.0
         self.full_scale = 2**camera.bit_depth - 1
         self.dtype = np.uint8 if camera.bit_depth == 8 else np.uint16
-        texture = cv2.GaussianBlur(self.rng.standard_normal((h, w), dtype=np.float32), (0, 0), 6)
+        # the plate texture belongs to the plate: the same for every seed
+        plate = np.random.default_rng(TEXTURE_SEED)
+        texture = cv2.GaussianBlur(plate.standard_normal((h, w), dtype=np.float32), (0, 0), 6)
         texture *= camera.texture / max(float(texture.std()), 1e-12)
         self.base = ((camera.background + texture) * self.scale).astype(np.float32)
         self._noise = [
