@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from scipy.spatial.transform import Rotation
 
 from calib_core.calibrate import solve
 from calib_core.errors import InputError
@@ -28,7 +29,7 @@ from drivers.base import (
     SoftLimits,
     SpotCamera,
 )
-from drivers.sim.devices import SimCameraDirect, SimRobot, SimSensor
+from drivers.sim.devices import SimCamera, SimCameraDirect, SimRobot, SimSensor
 from drivers.sim.workcell import load_workcell
 from drivers.sim.world import SimWorld
 
@@ -271,3 +272,58 @@ def test_simulated_session_solves_to_the_truth(seed, gain):
     # the recovered point accuracy is at the level of the seed's Table 1 (tens of microns)
     assert abs(cal.point("x_t") - truth["x_t"]) < 0.1
     assert np.linalg.norm([cal.point(k) for k in "abc"]) == pytest.approx(gain, abs=0.01)
+
+
+def test_rendered_camera_session_solves_to_the_truth():
+    """The same session measured through rendered frames and the OpenCV detector."""
+    world = SimWorld(load_workcell(), seed=21)
+    robot, sensor, camera = SimRobot(world), SimSensor(world), SimCamera(world, seed=21)
+    camera.calibrate()
+    rows = []
+    for target in paper_grid():
+        pose = robot.move_to(target)
+        reading, spot = sensor.read(), camera.measure_spot()
+        assert reading.ok and spot.ok and spot.quality > 0.5, spot.reason
+        rows.append({"x_o": pose.x, "y_o": pose.y, "z_o": pose.z, "theta_deg": pose.theta_deg,
+                     "d": reading.value, "x_p": spot.x, "y_p": spot.y})
+    cal = solve(dataset_from_frame(pd.DataFrame(rows).map(repr), "rendered"), model="auto")
+    truth = world.truth()
+    z = np.array([(cal.point(n) - truth[n]) / s for n, s in zip(cal.names, cal.sigma,
+                                                                  strict=True)])
+    assert np.all(np.abs(z) < 4.0), dict(zip(cal.names, z, strict=True))
+
+
+def six_dof_grid() -> list[FlangePose]:
+    """Poses tilted up to 2 degrees about x and y, at three heights: z_t and delta separate."""
+    rng = np.random.default_rng(5)
+    poses = []
+    for z in (16.0, 20.0, 24.0):
+        for _ in range(14):
+            rot = Rotation.from_euler("xyz", [*rng.uniform(-2, 2, 2), rng.uniform(-6, 6)],
+                                      degrees=True)
+            q = rot.as_quat(scalar_first=True)
+            poses.append(FlangePose(*rng.uniform(-2, 2, 2), z, 0.0,
+                                    tuple(float(v) for v in q)))
+    return poses
+
+
+def test_six_dof_poses_separate_z_t_and_delta():
+    wc = load_workcell()
+    wc = dataclasses.replace(wc, plate=dataclasses.replace(wc.plate, delta=0.7))
+    world = SimWorld(wc, seed=2)
+    robot, sensor, camera = SimRobot(world), SimSensor(world), SimCameraDirect(world)
+    rows = []
+    for target in six_dof_grid():
+        pose = robot.move_to(target)
+        reading, spot = sensor.read(), camera.measure_spot()
+        assert reading.ok and spot.ok and pose.quaternion is not None
+        qw, qx, qy, qz = pose.quaternion
+        rows.append({"x_o": pose.x, "y_o": pose.y, "z_o": pose.z, "qw": qw, "qx": qx,
+                     "qy": qy, "qz": qz, "d": reading.value, "x_p": spot.x, "y_p": spot.y})
+    cal = solve(dataset_from_frame(pd.DataFrame(rows).map(repr), "6dof"), model="auto")
+    assert cal.model == "general"
+    truth = world.truth()
+    assert truth["delta"] == 0.7
+    z = np.array([(cal.point(n) - truth[n]) / s for n, s in zip(cal.names, cal.sigma,
+                                                                  strict=True)])
+    assert np.all(np.abs(z) < 4.0), dict(zip(cal.names, z, strict=True))
