@@ -6,7 +6,7 @@ to a session file (WAL, synchronous=FULL) in a temporary directory; prints the m
 per pose over several sessions, the time of one commit, and for scale a full simulated pose
 with the rendered camera.
 
-    /work/venv/bin/python bench/bench_acquire.py [--repeats 5] [--dir DIR]
+    .venv/bin/python bench/bench_acquire.py [--repeats 5] [--dir DIR]
 """
 
 from __future__ import annotations

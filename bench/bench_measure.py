@@ -7,7 +7,7 @@
    Monte Carlo of the scatter over repeated scans against the reported sigma.
 3. Time the reconstruction + fit of a 1000-point scan and the pyramid pose from 30 points.
 
-    /work/venv/bin/python bench/bench_measure.py [--repeats 50]
+    .venv/bin/python bench/bench_measure.py [--repeats 50]
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Platform calibration figures over several simulated campaigns (run on demand).
 
-    /work/venv/bin/python bench/bench_platform.py [N_SEEDS]
+    .venv/bin/python bench/bench_platform.py [N_SEEDS]
 
 Per seed, for measured poses (0.005 deg, 3 um) and for face scans (8 points per face through
 the pyramid fit): the largest |identified - truth| / sigma over the identifiable parameters, and

@@ -11,7 +11,7 @@ import pytest
 from calib_core.errors import InputError
 from calib_core.grid import axis_values, load_grid, make_grid, paper_grid
 
-EXAMPLE = Path("/work/shared/data/example_paper_grid.csv")
+EXAMPLE = Path(__file__).resolve().parents[2] / "static_data" / "example_paper_grid.csv"
 
 
 def test_paper_grid_matches_the_seed_pattern() -> None:
