@@ -25,6 +25,16 @@ def build_dashboard(server: Any, workcell: Any, *, sim: bool = True,
     stop = gui.add_button("STOP", color="red", icon="hand-stop",
                           hint="Feed hold now, pause the acquisition, disarm motion")
     stop.on_click(lambda _: _stop(app))
+    control = gui.add_markdown("")
+    take = gui.add_button("Take control", hint="Hand control of the cell to this browser tab")
+    take.on_click(lambda event: app.take_control(event.client_id))
+
+    def show_control() -> None:
+        control.content = ("control: nobody (the first tab to command the cell takes it)"
+                           if app.controller is None else f"control: tab #{app.controller}")
+    show_control()
+    app.on_change("control", show_control)
+    server.on_client_disconnect(lambda client: app.release_control(client.client_id))
     tabs = gui.add_tab_group()
     for title, module in TABS:
         with tabs.add_tab(title):

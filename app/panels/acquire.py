@@ -132,7 +132,12 @@ def build(gui: Any, app: AppState) -> None:
         app.live = bool(live.value)
 
     @start.on_click
-    def _(_: Any) -> None:
+    def _(event: Any) -> None:
+        try:
+            app.check_control(event.client_id)
+        except Exception as exc:
+            app.notify("acquisition", str(exc), "warning")
+            return
         if app.runner is not None and app.runner.state == "running":
             app.notify("acquisition", "already running", "info")
             return
@@ -158,6 +163,11 @@ def build(gui: Any, app: AppState) -> None:
             runner.abort()
             app.notify("acquisition", "aborted; stored samples are kept", "warning")
         elif action == "Resume":
+            try:
+                app.check_control(event.client_id)
+            except Exception as exc:
+                app.notify("acquisition", str(exc), "warning")
+                return
             if runner.state != "paused":
                 app.notify("acquisition", f"nothing to resume (state {runner.state})", "info")
                 return

@@ -38,9 +38,11 @@ def jog_target(current: FlangePose, axis: str, sign: int, step: float) -> Flange
     return FlangePose(x, y, z, t)
 
 
-def jog(app: AppState, axis: str, sign: int, step: float) -> Future:
-    """Queue a jog; refused at once (MotionRefused) when disarmed or the step is invalid."""
-    app.require_motion()
+def jog(app: AppState, axis: str, sign: int, step: float,
+        client_id: int | None = None) -> Future:
+    """Queue a jog; refused at once (MotionRefused) when disarmed, another tab holds control,
+    or the step is invalid."""
+    app.require_motion(client_id)
     jog_target(FlangePose(0, 0, 0), axis, sign, step)  # validate before queueing
 
     def cmd() -> FlangePose:
@@ -48,9 +50,10 @@ def jog(app: AppState, axis: str, sign: int, step: float) -> Future:
     return app.worker.submit(f"jog {axis}{'+' if sign > 0 else '-'}", cmd)
 
 
-def go_to(app: AppState, x: float, y: float, z: float, theta: float) -> Future:
+def go_to(app: AppState, x: float, y: float, z: float, theta: float,
+          client_id: int | None = None) -> Future:
     """Queue an absolute move (soft limits and the maximum step are checked before it moves)."""
-    app.require_motion()
+    app.require_motion(client_id)
     return app.worker.submit("go to", lambda: app.move_to(FlangePose(x, y, z, theta)))
 
 
@@ -66,7 +69,7 @@ def build(gui: Any, app: AppState) -> None:
         def on_click(event: Any, axis: str = axis) -> None:
             sign = 1 if event.target.value.startswith("+") else -1
             try:
-                jog(app, axis, sign, float(step.value))
+                jog(app, axis, sign, float(step.value), event.client_id)
             except Exception as exc:  # shown to the operator, never raised into viser
                 app.notify("jog", str(exc), "warning")
         group.on_click(on_click)
@@ -75,7 +78,14 @@ def build(gui: Any, app: AppState) -> None:
     goto = gui.add_button("Go to")
 
     @arm.on_update
-    def _(_: Any) -> None:
+    def _(event: Any) -> None:
+        if arm.value and event.client_id is not None:
+            try:
+                app.check_control(event.client_id)
+            except Exception as exc:
+                arm.value = False
+                app.notify("arm motion", str(exc), "warning")
+                return
         app.armed = bool(arm.value)
 
     def refresh_arm() -> None:
@@ -93,9 +103,9 @@ def build(gui: Any, app: AppState) -> None:
     app.on_change("live", refresh_pose)
 
     @goto.on_click
-    def _(_: Any) -> None:
+    def _(event: Any) -> None:
         x, y, z = target.value
         try:
-            go_to(app, float(x), float(y), float(z), float(theta.value))
+            go_to(app, float(x), float(y), float(z), float(theta.value), event.client_id)
         except Exception as exc:
             app.notify("go to", str(exc), "warning")

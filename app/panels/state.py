@@ -102,6 +102,8 @@ class AppState:
         self.sim = sim
         self.seed = seed
         self.sim_move_time_s = sim_move_time_s
+        self.sim_camera = "direct"
+        self.controller: int | None = None
         self.session_path = session_path
         self.session: Any = None
         self.grid: PoseGrid = paper_grid()
@@ -157,7 +159,7 @@ class AppState:
 
     def connect_sim(self) -> None:
         """Connect the simulated robot, sensor and camera (worker thread)."""
-        from drivers.sim.devices import SimCameraDirect, SimRobot, SimSensor
+        from drivers.sim.devices import SimCamera, SimCameraDirect, SimRobot, SimSensor
         from drivers.sim.world import SimWorld
 
         self.disconnect()
@@ -166,32 +168,34 @@ class AppState:
         if move is None:
             move = self.workcell.timing.move_time_s or SIM_MOVE_TIME_S
         self.world, self.robot = world, SimRobot(world, move_time_s=move)
-        self.sensor, self.camera = SimSensor(world), SimCameraDirect(world)
+        self.sensor = SimSensor(world)
+        self.camera = SimCamera(world, seed=self.seed) if self.sim_camera == "rendered" \
+            else SimCameraDirect(world)
         self.sim = True
         self.publish(self.robot.read_pose(), self.sensor.read())
         self.changed("devices")
 
     def connect_hardware(self, robot_port: str, sensor_port: str, camera: str) -> None:
-        """Connect the real devices (worker thread); clear error when a driver is missing."""
-        import importlib
-
-        self.disconnect()
+        """Connect the GRBL robot, Keyence sensor and OpenCV camera (worker thread)."""
         try:
-            keyence = importlib.import_module("drivers.keyence_il")
-            grbl = importlib.import_module("drivers.grbl")
-            cam = importlib.import_module("drivers.camera_cv")
+            from drivers.camera_cv import OpenCVCamera
+            from drivers.grbl import GrblRobot
+            from drivers.keyence_il import KeyenceIL
         except ImportError as exc:
-            raise DriverError(f"hardware driver not available in this installation ({exc.name})"
+            raise DriverError(f"hardware driver not available in this installation ({exc})"
                               ) from None
-        robot_cls = next((getattr(grbl, n) for n in ("GrblRobot", "Grbl") if hasattr(grbl, n)),
-                         None)
-        cam_cls = next((getattr(cam, n) for n in ("CvSpotCamera", "SpotCameraCV", "CameraCV")
-                        if hasattr(cam, n)), None)
-        if robot_cls is None or cam_cls is None:
-            raise DriverError("hardware drivers found but their classes are not recognised")
-        self.robot = robot_cls(robot_port, limits=self.workcell.limits)
-        self.sensor = keyence.KeyenceIL(sensor_port)
-        self.camera = cam_cls(camera)
+        self.disconnect()
+        opened: list[Any] = []
+        try:
+            opened.append(GrblRobot(robot_port, self.workcell.limits))
+            opened.append(KeyenceIL(sensor_port))
+            opened.append(OpenCVCamera(int(camera) if camera.isdigit() else camera))
+        except BaseException:
+            for dev in opened:
+                with contextlib.suppress(Exception):
+                    dev.close()
+            raise
+        self.robot, self.sensor, self.camera = opened
         self.world = None
         self.sim = False
         self.changed("devices")
@@ -208,8 +212,37 @@ class AppState:
         if not self.connected:
             raise DriverError("no devices connected: use Setup > Connect first")
 
-    def require_motion(self) -> None:
-        """Refuse motion unless armed, connected and no acquisition is running."""
+    def check_control(self, client_id: int | None) -> None:
+        """Only the tab holding control may command devices; the first to ask gets it.
+
+        ``client_id`` None is a local caller (tests, the CLI). STOP needs no control.
+        """
+        if client_id is None:
+            return
+        if self.controller is None:
+            self.controller = client_id
+            self.changed("control")
+        elif self.controller != client_id:
+            raise MotionRefused(f"tab #{self.controller} holds control of the cell; use "
+                                "'Take control' to hand it over")
+
+    def take_control(self, client_id: int) -> None:
+        """Explicit hand-over: ``client_id`` becomes the controlling tab."""
+        previous, self.controller = self.controller, client_id
+        self.changed("control")
+        if previous is not None and previous != client_id:
+            self.notify("control", f"control handed over from tab #{previous} to tab "
+                        f"#{client_id}", "warning")
+
+    def release_control(self, client_id: int) -> None:
+        """A closed tab gives control back."""
+        if self.controller == client_id:
+            self.controller = None
+            self.changed("control")
+
+    def require_motion(self, client_id: int | None = None) -> None:
+        """Refuse motion unless armed, connected, in control and no acquisition is running."""
+        self.check_control(client_id)
         if not self.armed:
             raise MotionRefused("motion is disarmed: switch on 'Arm motion' first")
         self.require_devices()

@@ -297,3 +297,38 @@ def test_existing_session_opens_for_review(solved: AppState) -> None:
     finally:
         review.worker.stop()
         review.close_session()
+
+
+def test_only_the_tab_in_control_moves_until_handed_over(app: AppState) -> None:
+    app.armed = True
+    jog.jog(app, "x", 1, 0.5, client_id=1).result(10)     # first tab takes control
+    assert app.controller == 1
+    before = app.world.true_pose
+    with pytest.raises(MotionRefused, match="tab #1 holds control"):
+        jog.jog(app, "x", 1, 0.5, client_id=2)
+    with pytest.raises(MotionRefused, match="holds control"):
+        jog.go_to(app, 0.0, 0.0, 20.0, 0.0, client_id=2)
+    assert app.world.true_pose == before
+    app.take_control(2)                                     # explicit hand-over
+    jog.jog(app, "y", -1, 0.5, client_id=2).result(10)
+    with pytest.raises(MotionRefused):
+        jog.jog(app, "x", 1, 0.5, client_id=1)
+    assert any("handed over" in body for _, _, _, body in app.messages)
+    app.release_control(2)                                  # tab closed
+    assert app.controller is None
+    app.stop_motion()                                       # STOP needs no control
+    assert not app.armed
+
+
+def test_chessboard_calibration_of_the_rendered_sim_camera(app: AppState) -> None:
+    from app.panels import setup
+
+    assert "needs no calibration" in app.worker.call("cal", lambda: setup.calibrate_camera(app))
+    app.sim_camera = "rendered"
+    app.worker.call("connect", app.connect_sim)
+    message = app.worker.call("cal", lambda: setup.calibrate_camera(app), 60)
+    rms_um = float(message.split("(")[1].split(" µm")[0])
+    assert "192 corners" in message and rms_um < 5.0
+    spot = app.worker.call("spot", app.camera.measure_spot, 30)
+    truth = app.world.true_spot()
+    assert spot.ok and np.hypot(spot.x - truth[0], spot.y - truth[1]) < 0.05
