@@ -206,6 +206,16 @@ def beam_residuals(poses: Poses, d: np.ndarray, spot_xy: np.ndarray, h: np.ndarr
         beam_observation(poses, spot_xy)
 
 
+def outlier_threshold(n: int) -> float:
+    """Limit on a pose's chi-square (3 dof) scaled by the robust variance factors.
+
+    The scale is a MAD estimate, so the test is ``F(3, nu)`` with ``nu ~ 0.37 x 3n`` (the MAD's
+    efficiency), at a family-wise false-alarm rate of 1 % over ``n`` poses:
+    ``3 F^-1(1 - 0.01/n; 3, 1.11 n)``.
+    """
+    return float(3.0 * fdtri(3, 0.37 * 3 * n, 1.0 - OUTLIER_FALSE_ALARM / n))
+
+
 def robust_variance_factors(data: Dataset, h: np.ndarray, model: str, noise: NoiseModel,
                             inliers: np.ndarray) -> tuple[float, float]:
     """Robust lateral/axial variance factors: ``k = (1.4826 median|r_j / sigma_j|)^2``.
@@ -243,9 +253,7 @@ def _fit(data: Dataset, model: str, noise: NoiseModel, robust: bool
     h0, factors = h_lin, (1.0, 1.0)
     if robust:
         n = len(data)
-        # per-pose chi-square (3 dof) against a MAD-estimated scale: an F(3, nu) test, with
-        # nu ~ 0.37 x the residuals behind the scale (the MAD's efficiency)
-        threshold = 3.0 * fdtri(3, 0.37 * 3 * n, 1.0 - OUTLIER_FALSE_ALARM / n)
+        threshold = outlier_threshold(n)
         for _ in range(5):
             idx = np.flatnonzero(inliers)
             sub = poses.subset(idx)

@@ -19,9 +19,8 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from scipy import stats as sps
 
-from calib_core.calibrate import OUTLIER_FALSE_ALARM, BeamCalibration, beam_residuals
+from calib_core.calibrate import BeamCalibration, beam_residuals, outlier_threshold
 from calib_core.io import Dataset
 from calib_core.model import beam_regressor
 from calib_core.noise import residual_covariance_components
@@ -181,11 +180,6 @@ def rotation_angle_deg(dataset: Dataset) -> np.ndarray:
         return np.asarray(dataset.poses.theta_deg, dtype=float)
     tr = np.trace(dataset.poses.rotation, axis1=1, axis2=2)
     return np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
-
-
-def outlier_threshold(n_fit: int) -> float:
-    """The solver's per-pose chi-square limit: ``3 F^-1(1 - 0.01/n; 3, 1.11 n)``."""
-    return float(3.0 * sps.f.isf(OUTLIER_FALSE_ALARM / n_fit, 3, 0.37 * 3 * n_fit))
 
 
 def expected_rms(result: BeamCalibration, dataset: Dataset, fit_idx: np.ndarray,

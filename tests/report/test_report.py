@@ -32,7 +32,7 @@ from calib_core.noise import NoiseModel
 from calib_core.stats import axis_statistics
 from tests.core.simdata import as_dataset, seed_grid, seed_truth, simulate, tilted_grid
 
-EXAMPLE = Path("/work/shared/data/example_paper_grid.csv")
+EXAMPLE = Path(__file__).resolve().parents[2] / "static_data" / "example_paper_grid.csv"
 OUTLIER_ROW = 7
 WORKCELL = "[cell]\nname = 'simulated seed cell'\n"
 
