@@ -332,3 +332,19 @@ def test_chessboard_calibration_of_the_rendered_sim_camera(app: AppState) -> Non
     spot = app.worker.call("spot", app.camera.measure_spot, 30)
     truth = app.world.true_spot()
     assert spot.ok and np.hypot(spot.x - truth[0], spot.y - truth[1]) < 0.05
+
+
+def test_stop_ends_a_move_in_flight_within_100_ms(app: AppState) -> None:
+    app.sim_move_time_s = 2.0
+    app.worker.call("reconnect", app.connect_sim)
+    app.armed = True
+    future = jog.jog(app, "x", 1, 5.0)
+    time.sleep(0.3)                                  # the move is under way
+    t0 = time.perf_counter()
+    app.stop_motion()
+    with pytest.raises(DriverError, match="stopped"):
+        future.result(5)
+    latency = time.perf_counter() - t0
+    assert latency < 0.1, latency
+    x = app.world.true_pose.x
+    assert 0.2 < x < 2.0                              # stopped part-way (about 0.75 mm)

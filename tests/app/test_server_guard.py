@@ -165,3 +165,27 @@ def test_non_loopback_host_prints_warning(capsys: pytest.CaptureFixture[str]) ->
     captured = capsys.readouterr()
     assert "warning: listening on 0.0.0.0" in captured.err
     assert re.search(r"^http://0\.0\.0\.0:\d+/\?token=\S+$", captured.out, re.M)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--port", "70000"], "--port must be in 0..65535"),
+    (["--session", "/nonexistent-dir/s.db"], "does not exist"),
+    (["--sim", "--hardware"], "either --sim or --hardware"),
+    (["--workcell", "/nonexistent.toml"], "no such workcell file"),
+])
+def test_serve_bad_arguments_are_one_error_line(
+        argv: list[str], message: str, capsys: pytest.CaptureFixture[str]) -> None:
+    from app.cli import main
+
+    assert main(["serve", *argv]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and message in err and err.count("\n") == 1
+
+
+def test_serve_refuses_a_file_that_is_not_a_session(tmp_path, capsys) -> None:
+    from app.cli import main
+
+    bad = tmp_path / "garbage.db"
+    bad.write_bytes(b"\x00\x01 not sqlite at all" * 100)
+    assert main(["serve", "--session", str(bad)]) == 2
+    assert "error: " in capsys.readouterr().err
