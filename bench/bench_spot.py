@@ -4,8 +4,9 @@ Run: /work/venv/bin/python bench/bench_spot.py [--frames 300] [--seed 0]
 
 Frames are rendered first (not timed) from the default workcell's camera (spot sigma 3 px,
 read noise 1.5 grey levels, plate texture, laser-off background frame); then ``detect_spot``
-runs on each (timed, single thread). Rows: the default speckle and variants, the plain centroid
-for comparison, and the simulated camera's full grab (render) + detect + map cycle.
+runs on each (timed, single thread, best of three passes). Rows: the default speckle and
+variants, the plain centroid for comparison, and the simulated camera's full grab (render) +
+detect + map cycle.
 """
 
 from __future__ import annotations
@@ -33,9 +34,11 @@ def run(renderer: FrameRenderer, n: int, seed: int, speckle: float | None,
               for (u, v), a in zip(truth, angles, strict=True)]
     background = renderer.render()
     detect_spot(frames[0], background, config)  # warm-up
-    t0 = time.perf_counter()
-    dets = [detect_spot(f, background, config) for f in frames]
-    elapsed = time.perf_counter() - t0
+    elapsed = float("inf")
+    for _ in range(3):  # best of three passes: the machine may be shared
+        t0 = time.perf_counter()
+        dets = [detect_spot(f, background, config) for f in frames]
+        elapsed = min(elapsed, time.perf_counter() - t0)
     ok = np.array([d.ok for d in dets])
     uv = np.array([(d.u, d.v) for d in dets])
     err = np.linalg.norm(uv[ok] - truth[ok], axis=1)
