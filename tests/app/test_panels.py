@@ -348,3 +348,47 @@ def test_stop_ends_a_move_in_flight_within_100_ms(app: AppState) -> None:
     assert latency < 0.1, latency
     x = app.world.true_pose.x
     assert 0.2 < x < 2.0                              # stopped part-way (about 0.75 mm)
+
+
+def test_a_reconnecting_tab_gets_the_current_state(tmp_path: Path) -> None:
+    """A websocket client opened after a solve receives the spots and the results table."""
+    import msgspec.msgpack
+    import viser
+    import zstandard
+    from websockets.sync.client import connect
+
+    from app.panels import build_dashboard
+    from app.server import GuardedServer
+
+    server = GuardedServer("127.0.0.1", 0)
+    guard = server.start()
+    state = build_dashboard(server.viser, load_workcell(None), session_path=tmp_path / "s.db")
+    try:
+        state.sim_move_time_s = 0.0
+        state.worker.call("connect", state.connect_sim)
+        state.worker.call("acquire", lambda: acquire.run_acquisition(state, 1), 60)
+        state.worker.call("solve", lambda: solve.run_solve(state), 60)
+        x_t = f"{state.calibration.point('x_t'):.7g}"
+        texts: list[str] = []
+        names: set[str] = set()
+        dctx = zstandard.ZstdDecompressor()
+        with connect(f"ws://127.0.0.1:{guard.port}/?token={guard.token}",
+                     subprotocols=[f"viser-v{viser.__version__}"],
+                     additional_headers={"Origin": f"http://127.0.0.1:{guard.port}"},
+                     max_size=None) as ws:
+            deadline = time.monotonic() + 10
+            while time.monotonic() < deadline and not any(x_t in t for t in texts):
+                frame = ws.recv(timeout=5)
+                size, csize = (int.from_bytes(frame[k:k + 8], "little") for k in (0, 8))
+                payload = msgspec.msgpack.decode(dctx.decompress(frame[16:16 + csize],
+                                                                 max_output_size=size))
+                for m in payload["messages"]:
+                    names.add(str(m.get("name", "")))
+                    texts.append(str(m))
+        assert any(x_t in t and "z_t_minus_delta" in t for t in texts)
+        assert {"/cell/spots", "/cell/fitted_plane", "/cell/errors", "/cell/glass_plate",
+                "/cell/flange", "/cell/live_spot"} <= names
+    finally:
+        state.worker.stop()
+        state.close_session()
+        server.stop()

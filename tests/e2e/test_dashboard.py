@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
@@ -60,6 +61,18 @@ def test_calibration_in_the_browser_matches_the_simulated_truth(
         assert sigma > 0
         assert abs(value - expected) <= K_SIGMA * sigma, (name, value, sigma, expected)
     page.get_by_text("condition number", exact=False).first.wait_for()
+
+    page.get_by_role("tab", name="Export").click()
+    with page.expect_download() as info:
+        page.get_by_role("button", name="Download solve JSON").click()
+    calib = json.loads(Path(info.value.path()).read_text())
+    assert calib["n_points"] == 42
+    assert calib["params"]["x_t"] == pytest.approx(shown["x_t"][0], abs=1e-6)
+    with page.expect_download() as info:
+        page.get_by_role("button", name="Download session CSV").click()
+    csv = Path(info.value.path()).read_text().splitlines()
+    assert csv[0].startswith("# lasercal session") and len(csv) == 2 + 1 + 42
+    page.get_by_role("tab", name="Solve").click()
     shot = tmp_path / "dashboard-solved.png"
     page.screenshot(path=str(shot))
     assert shot.stat().st_size > 20_000
