@@ -135,8 +135,12 @@ class GrblRobot:
                  timeout: float = 1.0, retries: int = 2, feed: float = 1000.0,
                  move_timeout: float | None = None, settle_timeout: float = 2.0,
                  tolerance: float = 0.02) -> None:
-        if feed <= 0:
-            raise DriverError("GRBL feed rate must be > 0 mm/min")
+        if not (math.isfinite(feed) and feed > 0):
+            raise DriverError("GRBL feed rate must be a finite number > 0 mm/min")
+        for name, value in (("move_timeout", move_timeout), ("settle_timeout", settle_timeout),
+                            ("tolerance", tolerance)):
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise DriverError(f"GRBL {name} must be a finite number > 0")
         self.limits = limits
         self.feed = float(feed)
         self.move_timeout = move_timeout

@@ -13,6 +13,7 @@ Protocol (ASCII, commands and replies end CR LF, one command in flight):
 
 from __future__ import annotations
 
+import math
 import re
 import threading
 import time
@@ -90,6 +91,8 @@ class KeyenceIL:
                  zero_timeout: float = 5.0) -> None:
         if command not in ("SR", "M0"):
             raise DriverError(f"Keyence read command must be SR or M0, not {command!r}")
+        if not (math.isfinite(zero_timeout) and zero_timeout > 0):
+            raise DriverError("Keyence zero_timeout must be a finite number of seconds > 0")
         if not 0 <= amp_id <= 99:
             raise DriverError(f"Keyence amplifier ID must be 0..99, not {amp_id}")
         self.amp_id = amp_id

@@ -10,6 +10,7 @@ A vanished port (USB adapter unplugged, emulator gone) raises :class:`PortLost`;
 from __future__ import annotations
 
 import contextlib
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -38,8 +39,9 @@ class SerialLink:
 
     def __init__(self, port: str, baudrate: int, *, timeout: float = 0.5, retries: int = 2,
                  eol: str = "\r\n", device: str = "device") -> None:
-        if timeout <= 0 or retries < 0:
-            raise DriverError(f"{device}: timeout must be > 0 and retries >= 0")
+        if not (math.isfinite(timeout) and timeout > 0) or retries < 0:
+            raise DriverError(f"{device}: timeout must be a finite number of seconds > 0 and "
+                              "retries >= 0")
         self.port = port
         self.baudrate = int(baudrate)
         self.timeout = float(timeout)

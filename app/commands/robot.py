@@ -122,8 +122,9 @@ def run(args: argparse.Namespace) -> int:
     from drivers.base import FlangePose
     from drivers.grbl import GrblRobot
 
-    if args.timeout <= 0 or args.retries < 0:
-        raise InputError("--timeout must be > 0 and --retries >= 0")
+    if not (math.isfinite(args.timeout) and args.timeout > 0) or not 0 <= args.retries <= 100:
+        raise InputError("--timeout must be a finite number of seconds > 0 and --retries "
+                         "0..100")
     limits, source = load_limits(args.workcell)
     if not source:
         sys.stderr.write("note: no workcell file; generous default soft limits apply "
@@ -131,13 +132,16 @@ def run(args: argparse.Namespace) -> int:
     feed = getattr(args, "feed", 1000.0)
     if not (math.isfinite(feed) and feed > 0):
         raise InputError("--feed must be > 0 mm/min")
+    move_timeout = getattr(args, "move_timeout", None)
+    if move_timeout is not None and not (math.isfinite(move_timeout) and move_timeout > 0):
+        raise InputError("--move-timeout must be a finite number of seconds > 0")
     target = None
     if args.action == "move":
         target = FlangePose(args.x, args.y, args.z, args.theta)
         limits.check(target)  # refuse before even opening the port
     with GrblRobot(args.port, limits, baudrate=args.baud, timeout=args.timeout,
                    retries=args.retries, feed=feed,
-                   move_timeout=getattr(args, "move_timeout", None)) as robot:
+                   move_timeout=move_timeout) as robot:
         if args.action == "unlock":
             robot.unlock()
             print("unlocked")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 HELP = """\
@@ -47,8 +48,9 @@ def run(args: argparse.Namespace) -> int:
     from calib_core.errors import InputError
     from drivers.keyence_il import KeyenceIL, describe_invalid
 
-    if args.timeout <= 0 or args.retries < 0:
-        raise InputError("--timeout must be > 0 and --retries >= 0")
+    if not (math.isfinite(args.timeout) and args.timeout > 0) or not 0 <= args.retries <= 100:
+        raise InputError("--timeout must be a finite number of seconds > 0 and --retries "
+                         "0..100")
     with KeyenceIL(args.port, baudrate=args.baud, amp_id=args.amp_id, timeout=args.timeout,
                    retries=args.retries, command=args.command) as sensor:
         if args.action == "zero":

@@ -7,7 +7,7 @@ import threading
 import time
 
 import pytest
-from hypothesis import given
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from drivers.base import DeviceTimeout, DriverError, FlangePose, MotionRefused, Robot
@@ -198,3 +198,22 @@ def test_parse_status_rejects_malformed(line):
 def test_parse_status_only_raises_driver_errors(line):
     with contextlib.suppress(DriverError):
         parse_status(line)
+
+
+@settings(max_examples=30, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(junk=st.binary(min_size=1, max_size=40), kind=st.sampled_from(["garbage", "noise"]),
+       match=st.sampled_from(["?", "G90", "G4"]))
+def test_any_junk_gives_the_target_or_a_driver_error(grbl, junk, kind, match):
+    grbl.clear_faults()
+    grbl.inject(kind, data=junk, match=match)
+    target = FlangePose(1.0, 2.0, 3.0, 4.0) if grbl.position[0] == 0.0 else FlangePose(0, 0, 0, 0)
+    with GrblRobot(grbl.path, LIMITS, timeout=0.05, retries=1, settle_timeout=0.2,
+                   move_timeout=0.3) as drv:
+        try:
+            pose = drv.move_to(target)
+        except DriverError:
+            drv.close()
+            return
+    if b"<" not in junk and b"ok" not in junk and b"ALARM" not in junk:
+        assert _close(pose, target)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 
 import pytest
-from hypothesis import given
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from drivers.base import DeviceTimeout, DriverError, ReadingStatus
@@ -175,3 +175,18 @@ def test_parse_value_never_raises_nor_invents(field):
     assert (reading.value is not None) == reading.ok
     if reading.ok:
         assert abs(reading.value) < 1e4
+
+
+@settings(max_examples=30, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(junk=st.binary(min_size=1, max_size=40), kind=st.sampled_from(["garbage", "noise"]))
+def test_any_junk_gives_the_true_reading_or_a_driver_error(keyence, physics, junk, kind):
+    keyence.clear_faults()
+    keyence.inject(kind, data=junk)
+    with KeyenceIL(keyence.path, timeout=0.05, retries=1) as drv:
+        try:
+            reading = drv.read()
+        except DriverError:
+            return
+    if b"SR,00,037," not in junk:
+        assert reading.ok and reading.value == pytest.approx(physics.value)

@@ -20,6 +20,16 @@ def lasercal(*argv: str) -> subprocess.CompletedProcess[str]:
                           timeout=60)
 
 
+def run_main(argv: list[str]) -> int:
+    """``lasercal ARGV`` in-process; exit status (usage errors raise SystemExit)."""
+    from app.cli import main
+
+    try:
+        return main(argv)
+    except SystemExit as exc:
+        return int(exc.code)
+
+
 def test_sensor_read_value_out_of_range_invalid(keyence, physics):
     physics.value = 1.234
     out = lasercal("sensor", "read", "--port", keyence.path, "--timeout", "0.2")
@@ -106,3 +116,36 @@ def test_emulator_in_process_is_not_left_behind():
     emu = KeyenceEmulator(lambda: 0.0).start()
     emu.close()
     assert emu.gone and not emu._thread.is_alive()
+
+
+@pytest.mark.parametrize("argv", [
+    ["sensor", "read", "--port", "/dev/nonexistent-tty"],
+    ["sensor", "read", "--port", "/dev/null", "--timeout", "nan"],
+    ["sensor", "read", "--port", "/dev/null", "--timeout", "-1"],
+    ["sensor", "read", "--port", "/dev/null", "--baud", "fast"],
+    ["sensor", "zero"],
+    ["robot", "move", "--port", "/dev/null", "--x", "nan", "--y", "0", "--z", "0", "--theta", "0"],
+    ["robot", "move", "--port", "/dev/null", "--x", "0", "--y", "0", "--z", "0", "--theta", "0",
+     "--feed", "inf"],
+    ["robot", "pose", "--port", "/dev/null", "--workcell", "/nonexistent.toml"],
+    ["emulate", "grbl", "--move-time", "-1"],
+    ["emulate", "keyence", "--value", "inf"],
+])
+def test_bad_arguments_give_one_error_line(argv, capsys):
+    assert run_main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and len(err.splitlines()) == 1, err
+
+
+@pytest.mark.parametrize("table", [
+    "[limits]\nx = [1, 0]\ny = [0, 1]\nz = [0, 1]\ntheta_deg = [0, 1]\n",
+    "[limits]\nx = 'wide'\ny = [0, 1]\nz = [0, 1]\ntheta_deg = [0, 1]\n",
+    "[limits]\nx = [0, 1]\ny = [0, 1]\nz = [0, 1]\ntheta_deg = [0, 1]\nmax_step = true\n",
+    "[beam]\n", "not toml ["])
+def test_bad_workcell_limits_are_refused(tmp_path, table, capsys):
+    path = tmp_path / "cell.toml"
+    path.write_text(table)
+    argv = ["robot", "pose", "--port", "/dev/null", "--workcell", str(path)]
+    assert run_main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {path}: ") and len(err.splitlines()) == 1, err
