@@ -38,6 +38,8 @@ _HOP_HEADERS = frozenset({
 })
 #: Largest websocket message relayed (viser allows 50 MB, e.g. file transfers and renders).
 MAX_WS_MESSAGE = 50 * 1024 * 1024
+#: Largest HTTP request body accepted (viser itself only serves GETs).
+MAX_HTTP_BODY = 1024 * 1024
 LOOPBACK_NAMES = ("127.0.0.1", "localhost", "[::1]")
 #: Header by which viser recognises its own proxy (any other local client gets 403).
 UPSTREAM_SECRET_HEADER = "X-Lasercal-Upstream"
@@ -54,6 +56,23 @@ def is_loopback(host: str) -> bool:
         return ipaddress.ip_address(name).is_loopback
     except ValueError:
         return False
+
+
+def is_wildcard(host: str) -> bool:
+    """True for an all-interfaces bind address ('0.0.0.0', '::' or '')."""
+    return host.strip("[]") in ("0.0.0.0", "::", "")
+
+
+def local_names() -> set[str]:
+    """This machine's host name, FQDN and their addresses (the names another machine may use
+    to reach a server bound to all interfaces)."""
+    import socket
+
+    names = {socket.gethostname(), socket.getfqdn()}
+    for name in list(names):
+        with contextlib.suppress(OSError):
+            names.update(str(info[4][0]) for info in socket.getaddrinfo(name, None))
+    return {n for n in names if n}
 
 
 def _host_for_url(host: str) -> str:
@@ -87,8 +106,10 @@ class Guard:
     @property
     def allowed_hosts(self) -> frozenset[str]:
         names: set[str] = {_host_for_url(self.host), *self.extra_hosts}
-        if is_loopback(self.host):
+        if is_loopback(self.host) or is_wildcard(self.host):
             names.update(LOOPBACK_NAMES)
+        if is_wildcard(self.host):
+            names.update(_host_for_url(n) for n in local_names())
         return frozenset(f"{n}:{self.port}".lower() for n in names)
 
     def token_ok(self, candidate: str | None) -> bool:
@@ -127,12 +148,13 @@ def build_proxy_app(guard: Guard, upstream_port: int, upstream_secret: str) -> w
     Every relayed request carries ``upstream_secret`` in :data:`UPSTREAM_SECRET_HEADER`.
     """
     upstream = f"127.0.0.1:{upstream_port}"
-    app = web.Application(client_max_size=MAX_WS_MESSAGE)
+    app = web.Application(client_max_size=MAX_HTTP_BODY)
     session_key = _SESSION_KEY
 
     async def on_startup(app: web.Application) -> None:
         app[session_key] = aiohttp.ClientSession(
-            auto_decompress=False, headers={UPSTREAM_SECRET_HEADER: upstream_secret})
+            auto_decompress=False, headers={UPSTREAM_SECRET_HEADER: upstream_secret},
+            timeout=aiohttp.ClientTimeout(total=None, sock_connect=10))
 
     async def on_cleanup(app: web.Application) -> None:
         await app[session_key].close()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import re
+import socket
 import urllib.error
 import urllib.request
 from collections.abc import Iterator
@@ -142,11 +143,15 @@ def test_viser_port_itself_refuses_direct_connections(server: GuardedServer) -> 
 
 
 def test_guard_rules_for_other_hosts() -> None:
-    guard = Guard("0.0.0.0", 8080, token="t")
-    assert guard.url == "http://0.0.0.0:8080/?token=t"
-    assert guard.origin_ok("http://0.0.0.0:8080") and guard.origin_ok(None)
-    assert not guard.origin_ok("http://localhost:8080")  # not loopback-bound: exact origin only
-    assert not guard.origin_ok("https://0.0.0.0:8080")
+    guard = Guard("192.0.2.7", 8080, token="t")
+    assert guard.url == "http://192.0.2.7:8080/?token=t"
+    assert guard.origin_ok("http://192.0.2.7:8080") and guard.origin_ok(None)
+    assert not guard.origin_ok("http://localhost:8080")  # bound to one address: exact origin
+    assert not guard.origin_ok("https://192.0.2.7:8080")
+    anywhere = Guard("0.0.0.0", 8080, token="t")         # all interfaces: this machine's names
+    assert anywhere.origin_ok(f"http://{socket.gethostname()}:8080")
+    assert anywhere.origin_ok("http://127.0.0.1:8080") and anywhere.origin_ok("http://0.0.0.0:8080")
+    assert not anywhere.origin_ok("http://evil.example:8080")
     loop = Guard("127.0.0.1", 8080, token="t")
     assert loop.origin_ok("http://localhost:8080") and loop.origin_ok("http://[::1]:8080")
     assert not loop.origin_ok("http://localhost:8081")
