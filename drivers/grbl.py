@@ -16,7 +16,7 @@ import time
 from dataclasses import dataclass
 
 from drivers.base import DeviceTimeout, DriverError, FlangePose, MotionRefused, SoftLimits
-from drivers.serial_port import Aborted, SerialLink
+from drivers.serial_port import SerialLink
 
 #: GRBL 1.1 ``error:N`` meanings (the common ones).
 GRBL_ERRORS: dict[int, str] = {
@@ -157,19 +157,14 @@ class GrblRobot:
         return self._link.port
 
     # -- protocol --------------------------------------------------------------------------
-    def _command(self, line: str, *, timeout: float | None = None, retries: int | None = None,
-                 abort: bool = False) -> None:
+    def _command(self, line: str, *, timeout: float | None = None,
+                 retries: int | None = None) -> None:
         """Send a G-code line and wait for its ``ok``; error/alarm replies raise."""
 
         def accept(reply: str) -> bool:
             return reply == "ok" or reply.startswith(("error:", "ALARM:"))
 
-        try:
-            reply = self._link.transact(line, accept, timeout=timeout, retries=retries,
-                                        abort=self._stop.is_set if abort else None)
-        except Aborted:
-            raise MotionStopped(f"move stopped by operator (feed hold sent to {self.port}); "
-                                "the next move clears the controller's queue") from None
+        reply = self._link.transact(line, accept, timeout=timeout, retries=retries)
         if reply.startswith("error:"):
             raise GrblError(f"GRBL on {self.port} rejected {line!r}: "
                             f"{error_text(_code(reply, 'error:'))}")
@@ -226,17 +221,25 @@ class GrblRobot:
             raise DeviceTimeout(f"GRBL on {self.port} did not restart after the soft reset")
         self._held = False
 
-    def _check(self, target: FlangePose) -> None:
+    def _check(self, target: FlangePose) -> FlangePose:
+        """The 4-axis target (theta from a z-only quaternion), checked against the limits."""
         if target.quaternion is not None:
-            _, qx, qy, _ = target.quaternion
-            if abs(qx) > 1e-9 or abs(qy) > 1e-9:
+            qw, qx, qy, qz = target.quaternion
+            norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+            if not (math.isfinite(norm) and norm > 0) or max(abs(qx), abs(qy)) > 1e-9 * norm:
                 raise MotionRefused("the GRBL robot only rotates about z (axis A); a tilted "
                                     "orientation was requested; nothing was sent to the robot")
+            theta = math.degrees(2.0 * math.atan2(qz, qw))
+            target = FlangePose(target.x, target.y, target.z, (theta + 180.0) % 360.0 - 180.0)
         self.limits.check(target)
+        return target
 
     def move_to(self, target: FlangePose) -> FlangePose:
-        """Check limits, move, wait for the end of motion, return the pose read back."""
-        self._check(target)
+        """Check limits, move, wait for the end of motion, return the pose read back.
+
+        A quaternion target must be a rotation about z; theta = 2 atan2(qz, qw).
+        """
+        target = self._check(target)
         x, y, z, a = target.x, target.y, target.z, target.theta_deg
         with self._link.lock:
             self._stop.clear()
@@ -250,9 +253,51 @@ class GrblRobot:
             self._command(f"G90 G1 X{x:.3f} Y{y:.3f} Z{z:.3f} A{a:.3f} F{self.feed:g}")
             dist = math.dist(begin.as_array(), target.as_array())
             wait = self.move_timeout or 10.0 + 3.0 * dist / self.feed * 60.0
-            self._command("G4 P0", timeout=wait, retries=0, abort=True)
+            self._wait_motion(target, wait)
             pose = self._settle(target)
         return pose
+
+    def _wait_motion(self, target: FlangePose, wait: float) -> None:
+        """Send ``G4 P0`` and wait ``wait`` s at most for its ``ok`` (end of motion).
+
+        Whenever no line arrives for one reply timeout, ``?`` probes the controller: a report
+        of Idle at the target means the ``ok`` was lost and the motion is over.
+        """
+        link = self._link
+        link.discard_input()
+        link.send_line("G4 P0")
+        deadline = time.monotonic() + wait
+        while True:
+            remaining = deadline - time.monotonic()
+            line = link.read_line(max(0.0, min(link.timeout, remaining)), self._stop.is_set)
+            if self._stop.is_set():
+                raise MotionStopped(f"move stopped by operator (feed hold sent to {self.port}); "
+                                    "the next move clears the controller's queue")
+            if line is None:
+                if remaining <= 0:
+                    raise DeviceTimeout(f"GRBL on {self.port}: no end of motion (G4 P0 ok) "
+                                        f"within {wait:g} s")
+                link.write(b"?")
+            elif line == "ok":
+                return
+            elif line.startswith("error:"):
+                raise GrblError(f"GRBL on {self.port} rejected 'G4 P0': "
+                                f"{error_text(_code(line, 'error:'))}")
+            elif line.startswith("ALARM:"):
+                raise GrblAlarm(f"GRBL on {self.port}: {alarm_text(_code(line, 'ALARM:'))}")
+            elif line.startswith("<"):
+                try:
+                    status = parse_status(line)
+                except DriverError:
+                    continue
+                if status.wco is not None:
+                    self._wco = status.wco
+                pose = self._pose(status)
+                if status.base_state == "Alarm":
+                    raise GrblAlarm(f"GRBL on {self.port} went into Alarm during the move")
+                if (status.base_state == "Idle" and
+                        float(abs(pose.as_array() - target.as_array()).max()) <= self.tolerance):
+                    return  # the ok was lost; the motion is over
 
     def jog(self, dx: float = 0.0, dy: float = 0.0, dz: float = 0.0,
             dtheta: float = 0.0) -> FlangePose:

@@ -25,10 +25,6 @@ class PortLost(DriverError):
     """The serial port disappeared or failed (unplugged cable/adapter); reconnect to continue."""
 
 
-class Aborted(DriverError):
-    """A wait was abandoned because the caller's ``abort()`` returned True (e.g. a stop)."""
-
-
 class SerialLink:
     """An open serial port (8N1) that sends and receives text lines.
 
@@ -154,12 +150,11 @@ class SerialLink:
 
     def transact(self, line: str | bytes, accept: Callable[[str], bool], *,
                  timeout: float | None = None, retries: int | None = None,
-                 what: str | None = None, abort: Callable[[], bool] | None = None) -> str:
+                 what: str | None = None) -> str:
         """Send ``line`` (+ :attr:`eol`; bytes are sent as they are), return the first reply
         line for which ``accept`` is true.
 
-        Other lines are skipped; :class:`Aborted` is raised as soon as ``abort()`` is true.
-        When no accepted line arrives within ``timeout`` the stale
+        Other lines are skipped. When no accepted line arrives within ``timeout`` the stale
         input is dropped and the line re-sent, at most ``retries`` times; then
         :class:`DeviceTimeout` (nothing at all received) or :class:`DriverError` (only
         unusable lines received) is raised.
@@ -176,13 +171,7 @@ class SerialLink:
                 else:
                     self.send_line(line)
                 deadline = time.monotonic() + timeout
-                while True:
-                    reply = self.read_line(max(0.0, deadline - time.monotonic()), abort)
-                    if reply is None:
-                        if abort is not None and abort():
-                            raise Aborted(f"{self.device}: wait for the reply to {what} "
-                                          "abandoned")
-                        break
+                while (reply := self.read_line(max(0.0, deadline - time.monotonic()))) is not None:
                     if accept(reply):
                         return reply
                     if reply:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import math
 import threading
 import time
 
@@ -72,6 +73,13 @@ def test_refused_target_never_reaches_the_controller(grbl, robot, target):
     assert grbl.received_bytes == b""
 
 
+def test_z_only_quaternion_target_moves_axis_a(grbl, robot):
+    half = math.radians(30.0) / 2
+    pose = robot.move_to(FlangePose(1.0, 2.0, 3.0, 0.0,
+                                    quaternion=(math.cos(half), 0.0, 0.0, math.sin(half))))
+    assert _close(pose, FlangePose(1.0, 2.0, 3.0, 30.0), 1e-3)
+
+
 def test_jog_beyond_max_step_is_refused(grbl, robot):
     with pytest.raises(MotionRefused, match="exceeds the maximum step 20"):
         robot.jog(dx=25.0)
@@ -128,6 +136,19 @@ def test_garbled_replies(grbl, robot, kind):
     else:
         with pytest.raises(DriverError, match="unusable replies to '\\?'"):
             robot.read_pose()
+
+
+@pytest.mark.parametrize("kind", ["silent", "garbage", "truncate"])
+def test_lost_end_of_motion_ok_is_recovered_by_status(grbl, robot, kind):
+    grbl.move_time = 0.3
+    grbl.inject(kind, match="G4")
+    t0 = time.monotonic()
+    assert _close(robot.move_to(TARGET), TARGET)
+    assert time.monotonic() - t0 < 0.3 + 3 * TIMEOUT
+    grbl.move_time = 5.0  # longer than the allowed move time
+    with GrblRobot(grbl.path, LIMITS, timeout=TIMEOUT, move_timeout=0.5) as drv, \
+            pytest.raises(DeviceTimeout, match=r"no end of motion \(G4 P0 ok\) within 0.5 s"):
+        drv.move_to(FlangePose(0.0, 0.0, 0.0, 0.0))
 
 
 def test_idle_before_pose_reached(grbl, robot):
