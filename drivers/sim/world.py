@@ -9,8 +9,10 @@ Conventions (mm, degrees):
   (``|u| = 1``). The spot is the first plate surface met coming from the sensor head
   (largest ``s``), ``P = P0 + s R u'``; the sensor reports ``d = s - d0 + noise``, i.e. the
   distance along the beam divided by ``gain``, minus the zero offset ``d0`` (0 until
-  :meth:`SimWorld.zero_sensor`). Hence ``P = O + R (T + d0 u' + d u')`` holds exactly and the
-  linear model recovers ``T_eff = T + d0 u'`` and ``u'`` (see :meth:`SimWorld.truth`).
+  :meth:`SimWorld.zero_sensor`); it is out of range when ``|s| > range`` (a physical window
+  around ``T``, which sits at the reference distance from the head). Hence
+  ``P = O + R (T + d0 u' + d u')`` holds exactly and the linear model recovers
+  ``T_eff = T + d0 u'`` and ``u'`` (see :meth:`SimWorld.truth`).
 - The camera sees the spot only on the glass plate, >= 10 px inside its image; its measured
   ``x_p, y_p`` carries ``noise.camera`` per axis (fresh draw per sample).
 """
@@ -135,13 +137,19 @@ class SimWorld:
 
     # -- sensor --------------------------------------------------------------------------
     def read_sensor(self) -> SensorReading:
-        """One reading: ``d = s - d0 + N(0, sensor)``; out-of-range beyond ``+-range`` or no hit."""
+        """One reading ``d = s + N(0, sensor) - d0``.
+
+        Out-of-range when no surface is hit or the raw ``s + noise`` is beyond ``+-range``: the
+        measuring window is physical (``T`` of the workcell file sits at the reference
+        distance), whatever the zero.
+        """
         with self._lock:
             hit = self.beam_hit()
             if hit is None:
                 return SensorReading(ReadingStatus.OUT_OF_RANGE, raw="no surface")
-            d = hit.s - self._d0 + self._rng.normal(0.0, self.workcell.noise.sensor)
-            if abs(d) > self.workcell.sensor.range:
+            raw = hit.s + self._rng.normal(0.0, self.workcell.noise.sensor)
+            d = raw - self._d0
+            if abs(raw) > self.workcell.sensor.range:
                 return SensorReading(ReadingStatus.OUT_OF_RANGE, raw=f"{d:+.3f}")
             return SensorReading(ReadingStatus.OK, float(d), raw=f"{d:+.6f}")
 
@@ -149,7 +157,7 @@ class SimWorld:
         """Zero the sensor at the current (noise-free) reading; False if no surface is in range."""
         with self._lock:
             hit = self.beam_hit()
-            if hit is None or abs(hit.s - self._d0) > self.workcell.sensor.range:
+            if hit is None or abs(hit.s) > self.workcell.sensor.range:
                 return False
             self._d0 = hit.s
             return True
