@@ -327,3 +327,17 @@ def test_six_dof_poses_separate_z_t_and_delta():
     z = np.array([(cal.point(n) - truth[n]) / s for n, s in zip(cal.names, cal.sigma,
                                                                   strict=True)])
     assert np.all(np.abs(z) < 4.0), dict(zip(cal.names, z, strict=True))
+
+
+def test_measuring_window_is_physical_after_zeroing():
+    """Zeroed at z = 25 (raw -4.75), the reading at z = 15 is about +10.5: beyond +-10 from the
+    zero but inside the sensor's physical window, so still a valid reading."""
+    world = SimWorld(with_noise(ZERO_NOISE), seed=0)
+    robot, sensor = SimRobot(world), SimSensor(world)
+    robot.move_to(FlangePose(0.0, 0.0, 25.0, 0.0))
+    sensor.zero()
+    robot.move_to(FlangePose(0.0, 0.0, 15.0, 0.0))
+    reading = sensor.read()
+    assert reading.ok and reading.value == pytest.approx(10.5, abs=0.2)
+    robot.move_to(FlangePose(0.0, 0.0, 31.0, 0.0))
+    assert sensor.read().status is ReadingStatus.OUT_OF_RANGE
