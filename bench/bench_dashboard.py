@@ -80,6 +80,48 @@ def bench_live(seconds: float, clients: list[int]) -> None:
         server.stop()
 
 
+def rss_mb() -> float:
+    """Resident set size of this process (MB), from /proc."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def bench_soak(seconds: float, clients: int) -> None:
+    """Live view with ``clients`` connected for ``seconds``: RSS every 10 % of the run."""
+    server = GuardedServer("127.0.0.1", 0)
+    guard = server.start()
+    app = build_dashboard(server.viser, load_workcell(None))
+    url = f"ws://127.0.0.1:{guard.port}/?token={guard.token}"
+    origin = f"http://127.0.0.1:{guard.port}"
+    samples: list[tuple[float, float]] = []
+    stop = False
+
+    def sample() -> None:
+        t0 = time.monotonic()
+        while not stop:
+            samples.append((time.monotonic() - t0, rss_mb()))
+            time.sleep(max(seconds / 10, 0.5))
+    import threading
+    sampler = threading.Thread(target=sample, daemon=True)
+    try:
+        time.sleep(1.0)
+        sampler.start()
+
+        async def run() -> list[float]:
+            return await asyncio.gather(*[_client(url, origin, seconds) for _ in range(clients)])
+        rates = asyncio.run(run())
+    finally:
+        stop = True
+        app.worker.stop()
+        server.stop()
+    first, last = samples[1][1], samples[-1][1]
+    print(f"soak {seconds:.0f} s, {clients} client(s): live {min(rates):.1f} Hz min per client;"
+          f" RSS {first:.1f} MB -> {last:.1f} MB ({last - first:+.1f} MB); samples "
+          + ", ".join(f"{t:.0f}s:{m:.0f}" for t, m in samples))
+
+
 def bench_solve(repeats: int) -> None:
     from playwright.sync_api import sync_playwright
 
@@ -131,7 +173,12 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=5.0)
     parser.add_argument("--clients", default="1,10", help="comma-separated client counts")
     parser.add_argument("--repeats", type=int, default=5, help="Solve H clicks to time")
+    parser.add_argument("--soak", type=float, default=0.0, metavar="SECONDS",
+                        help="only run a live-view soak this long and report the memory")
     args = parser.parse_args()
+    if args.soak:
+        bench_soak(args.soak, max(int(c) for c in args.clients.split(",")))
+        return
     bench_live(args.seconds, [int(c) for c in args.clients.split(",")])
     bench_solve(args.repeats)
 

@@ -28,6 +28,8 @@ from drivers.base import DriverError, FlangePose, MotionRefused, SensorReading
 SIM_MOVE_TIME_S = 0.05
 #: Live view: at most this many scene updates per second.
 LIVE_MAX_HZ = 30.0
+#: Live view on hardware: the robot's pose is polled at most this often (status queries).
+HARDWARE_POSE_POLL_S = 0.2
 _LEVEL_COLOR = {"info": "blue", "warning": "yellow", "error": "red", "success": "green"}
 
 
@@ -125,6 +127,7 @@ class AppState:
         self.solve_count = 0
         self._listeners: dict[str, list[Callable[[], None]]] = {}
         self._last_push = 0.0
+        self._last_pose_poll = 0.0
         self._publish_lock = threading.Lock()
         self.scene = WorkcellScene(server, workcell) if server is not None else None
         self.worker = Worker(self.notify, idle=self._idle, idle_period_s=1.0 / LIVE_MAX_HZ)
@@ -275,7 +278,11 @@ class AppState:
             return
         if self.runner is not None and self.runner.state == "running":
             return
-        self.publish(self.robot.read_pose(), self.sensor.read())
+        now = time.monotonic()
+        pose = None
+        if self.sim or now - self._last_pose_poll >= HARDWARE_POSE_POLL_S or self.latest is None:
+            pose, self._last_pose_poll = self.robot.read_pose(), now
+        self.publish(pose, self.sensor.read())
 
     def publish(self, pose: FlangePose | None, reading: SensorReading | None) -> None:
         """Record the latest pose/reading and redraw flange, beam and live spot (throttled)."""
