@@ -6,6 +6,10 @@ import argparse
 import signal
 import sys
 import threading
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from drivers.emulators import PtyEmulator
 
 HELP = """\
 Start a protocol emulator on a pseudo-terminal and print its device path (e.g. /dev/pts/5)
@@ -16,7 +20,9 @@ on its own line; then serve until Ctrl-C or SIGTERM. Point the hardware commands
 
 keyence: DL-RS1A with IL amplifier(s) reading a constant displacement (--value mm, or
 --out-of-range); zero-set works. grbl: GRBL 1.1 with axes X Y Z A that moves to each target
-in --move-time seconds and reports its own position.
+in --move-time seconds and reports its own position. cell: both, on the simulated workcell
+physics (the sensor reads the beam's distance to the plates at the GRBL's pose); prints the
+GRBL path, then the Keyence path, each on its own line.
 """
 
 
@@ -40,6 +46,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--move-time", type=float, default=0.0, metavar="S",
                    help="seconds per move (default 0: instantaneous)")
     g.set_defaults(func=run)
+    c = devices.add_parser("cell", help="GRBL + Keyence on the simulated workcell physics",
+                           description="GRBL and Keyence emulators sharing the simulated "
+                                       "workcell; prints the GRBL path, then the Keyence path.")
+    c.add_argument("--workcell", metavar="FILE.toml",
+                   help="workcell file (default: the packaged seed cell)")
+    c.add_argument("--seed", type=int, default=0, help="random seed of the sensor noise")
+    c.add_argument("--move-time", type=float, default=0.0, metavar="S",
+                   help="seconds per move (default 0: instantaneous)")
+    c.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -48,27 +63,43 @@ def run(args: argparse.Namespace) -> int:
     from calib_core.errors import InputError
     from drivers.emulators import GrblEmulator, KeyenceEmulator
 
+    if args.device != "keyence" and not (math.isfinite(args.move_time) and args.move_time >= 0):
+        raise InputError("--move-time must be >= 0 seconds")
+    if args.device == "cell":
+        from drivers.emulators import CellEmulators
+        from drivers.sim.workcell import load_workcell
+        from drivers.sim.world import SimWorld
+
+        cell = CellEmulators(SimWorld(load_workcell(args.workcell), seed=args.seed),
+                             move_time=args.move_time)
+        return _serve([cell.grbl, cell.keyence])
     if args.device == "keyence":
         if not 1 <= args.amplifiers <= 9 or not math.isfinite(args.value):
             raise InputError("--amplifiers must be 1..9 and --value finite")
         value = None if args.out_of_range else args.value
         emulator = KeyenceEmulator(lambda: value, amp_ids=tuple(range(args.amplifiers)))
     else:
-        if not (math.isfinite(args.move_time) and args.move_time >= 0):
-            raise InputError("--move-time must be >= 0 seconds")
         emulator = GrblEmulator(move_time=args.move_time)
+    return _serve([emulator])
+
+
+def _serve(emulators: list[PtyEmulator]) -> int:
+    """Start, print each device path on its own line, serve until SIGINT/SIGTERM."""
     done = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: done.set())
                 for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        emulator.start()
-        print(emulator.path, flush=True)
-        sys.stderr.write(f"{emulator.device} emulator serving on {emulator.path}; "
-                         "Ctrl-C to stop\n")
+        for emulator in emulators:
+            emulator.start()
+        for emulator in emulators:
+            print(emulator.path, flush=True)
+            sys.stderr.write(f"{emulator.device} emulator serving on {emulator.path}\n")
+        sys.stderr.write("Ctrl-C or SIGTERM to stop\n")
         while not done.wait(0.5):
             pass
     finally:
-        emulator.close()
+        for emulator in emulators:
+            emulator.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     return 0
