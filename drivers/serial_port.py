@@ -3,8 +3,9 @@
 One command in flight: :meth:`SerialLink.transact` and any multi-line exchange hold
 :attr:`SerialLink.lock` (re-entrant). :meth:`SerialLink.write_now` bypasses the lock for
 real-time bytes (e.g. GRBL ``!``) that must reach the device while a command waits.
-A vanished port (USB adapter unplugged, emulator gone) raises :class:`PortLost`;
-:meth:`SerialLink.reconnect` reopens it.
+A vanished port (USB adapter unplugged, emulator gone) raises :class:`PortLost`; the next
+call reopens the same port name (a re-plugged adapter, e.g. a ``/dev/serial/by-id`` link), and
+:meth:`SerialLink.reconnect` opens it, or another name, explicitly.
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ class SerialLink:
         self.lock = threading.RLock()
         self._buf = bytearray()
         self._ser = None
+        self._closed = False
         self._open()
 
     # -- port life cycle -------------------------------------------------------------------
@@ -62,9 +64,14 @@ class SerialLink:
                            "check the cable, the port name and that no other program uses "
                            "it") from exc
         self._buf.clear()
+        self._closed = False
 
     def close(self) -> None:
-        """Close the port (idempotent)."""
+        """Close the port (idempotent); it stays closed until :meth:`reconnect`."""
+        self._closed = True
+        self._release()
+
+    def _release(self) -> None:
         ser, self._ser = self._ser, None
         if ser is not None:
             with contextlib.suppress(Exception):  # already gone: nothing left to release
@@ -83,13 +90,20 @@ class SerialLink:
         return self._ser is not None
 
     def _lost(self, exc: BaseException) -> PortLost:
-        self.close()
+        self._release()
         return PortLost(f"{self.device} port {self.port} was lost ({_short(exc)}); the cable or "
                         "adapter was probably unplugged: reconnect it and resume")
 
     def _port(self):
+        """The open port; after a loss (not a :meth:`close`) it is reopened once per call."""
         if self._ser is None:
-            raise PortLost(f"{self.device} port {self.port} is closed; reconnect and resume")
+            if self._closed:
+                raise PortLost(f"{self.device} port {self.port} is closed")
+            try:
+                self._open()
+            except PortLost as exc:
+                raise PortLost(f"{self.device} port {self.port} is still missing; plug the "
+                               "device back in (same port name) and resume") from exc
         return self._ser
 
     # -- raw I/O ---------------------------------------------------------------------------

@@ -198,6 +198,20 @@ def test_port_vanishes_mid_move_then_reconnect(grbl, robot):
     assert _close(robot.move_to(TARGET), TARGET)
 
 
+def test_unplugged_controller_reopened_under_the_same_name(grbl, tmp_path):
+    link = tmp_path / "ttyGRBL"
+    link.symlink_to(grbl.path)
+    with GrblRobot(str(link), LIMITS, timeout=TIMEOUT) as drv:
+        assert _close(drv.move_to(TARGET), TARGET)
+        grbl.vanish()
+        with pytest.raises(PortLost):
+            drv.read_pose()
+        link.unlink()
+        link.symlink_to(grbl.replug())
+        assert _close(drv.read_pose(), TARGET)  # the controller kept its position
+        assert _close(drv.move_to(FlangePose(0, 0, 0, 0)), FlangePose(0, 0, 0, 0))
+
+
 @pytest.mark.parametrize(("line", "state", "mpos", "wpos", "wco"), [
     ("<Idle|MPos:1.000,2.000,3.000,4.000|FS:0,0>", "Idle", (1, 2, 3, 4), None, None),
     ("<Hold:0|WPos:-1.5,0,0,90|FS:0,0|WCO:1,1,1,0>", "Hold:0", None, (-1.5, 0, 0, 90),

@@ -145,6 +145,23 @@ def test_port_vanishes_then_reconnect(keyence, sensor):
     assert sensor.read().value == pytest.approx(1.234)
 
 
+def test_replugged_device_under_the_same_name_is_reopened(keyence, tmp_path):
+    link = tmp_path / "ttyKEYENCE"  # like /dev/serial/by-id/...
+    link.symlink_to(keyence.path)
+    with KeyenceIL(str(link), timeout=TIMEOUT) as drv:
+        assert drv.read().ok
+        keyence.vanish()
+        with pytest.raises(PortLost, match="was lost"):
+            drv.read()
+        with pytest.raises(PortLost, match="still missing; plug the device back in"):
+            drv.read()
+        link.unlink()
+        link.symlink_to(keyence.replug())
+        assert drv.read().value == pytest.approx(1.234)
+    with pytest.raises(PortLost, match="is closed"):
+        drv.read()
+
+
 def test_port_vanishes_mid_command(keyence, sensor):
     keyence.inject("vanish")
     with pytest.raises(PortLost):
