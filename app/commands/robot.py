@@ -13,6 +13,12 @@ DEFAULT_LIMITS: dict[str, Any] = {"x": (-1000.0, 1000.0), "y": (-1000.0, 1000.0)
                                   "max_step": math.inf}
 DEFAULT_WORKCELL = "workcell_default.toml"
 
+LIMITS_HELP = f"""\
+Soft limits: a move outside them is refused before anything is sent. They come from the
+[limits] table (x, y, z, theta_deg as [lo, hi]; max_step) of --workcell FILE.toml, else of the
+packaged static_data/{DEFAULT_WORKCELL}; if neither exists, generous defaults apply:
+x, y, z in [-1000, 1000] mm, theta in [-360, 360] deg (a note says so on stderr)."""
+
 HELP = f"""\
 Drive a robot behind a GRBL 1.1 controller (115200 8N1; axes X Y Z in mm, A = theta in deg).
 
@@ -21,10 +27,7 @@ Drive a robot behind a GRBL 1.1 controller (115200 8N1; axes X Y Z in mm, A = th
   pose    print the current pose
   unlock  clear an alarm lock ($X) after checking the machine
 
-Soft limits: a move outside them is refused before anything is sent. They come from the
-[limits] table (x, y, z, theta_deg as [lo, hi]; max_step) of --workcell FILE.toml, else of the
-packaged static_data/{DEFAULT_WORKCELL}; if neither exists, generous defaults apply:
-x, y, z in [-1000, 1000] mm, theta in [-360, 360] deg (a note says so on stderr).
+{LIMITS_HELP}
 
 Output: 'x=10.000 y=-20.500 z=30.250 theta=45.000'. Exit status: 0 done, 2 refused target,
 controller error/alarm or timeout, with one 'error:' line on stderr.
@@ -48,8 +51,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     actions = p.add_subparsers(dest="action", metavar="ACTION", parser_class=type(p))
     actions.required = True
     move = actions.add_parser("move", help="move to a pose and print the pose read back",
-                              description="Move to (x, y, z, theta), wait, print the pose "
-                                          "read back. Limits: see 'lasercal robot --help'.")
+                              description="Move to (x, y, z, theta), wait for the end of motion, "
+                                          "print the pose read back.\n\n" + LIMITS_HELP,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
     for axis, unit in (("x", "mm"), ("y", "mm"), ("z", "mm"), ("theta", "deg")):
         move.add_argument(f"--{axis}", type=float, required=True, help=f"target {axis} ({unit})")
     move.add_argument("--feed", type=float, default=1000.0, help="feed rate mm/min (default 1000)")
