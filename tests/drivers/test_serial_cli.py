@@ -149,3 +149,18 @@ def test_bad_workcell_limits_are_refused(tmp_path, table, capsys):
     assert run_main(argv) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"error: {path}: ") and len(err.splitlines()) == 1, err
+
+
+def test_robot_without_workcell_file_uses_generous_limits(grbl, monkeypatch, capsys):
+    import app.commands.robot as robot_cmd
+
+    monkeypatch.setattr(robot_cmd, "DEFAULT_WORKCELL", "no_such_workcell.toml")
+    argv = ["robot", "move", "--port", grbl.path, "--x", "500", "--y", "0", "--z", "0",
+            "--theta", "0", "--timeout", "0.5"]
+    assert run_main(argv) == 0
+    out = capsys.readouterr()
+    assert out.out == "x=500.000 y=0.000 z=0.000 theta=0.000\n"
+    assert "note: no workcell file; generous default soft limits apply" in out.err
+    argv[5] = "1500"
+    assert run_main(argv) == 2
+    assert "outside the soft limits [-1000, 1000]" in capsys.readouterr().err
