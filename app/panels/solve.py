@@ -195,6 +195,8 @@ def build(gui: Any, app: AppState) -> None:
         truth = app.world.truth() if app.sim and app.world is not None else None
         params.content = params_table(view.calibration, truth)
         summary.content = summary_markdown(view)
+        if app.server is not None:
+            app.server.flush()          # the numbers first, the plots in a later frame
         hist_plot.figure, scatter_plot.figure = residual_figures(view)
         hist_plot.visible = scatter_plot.visible = True
         for t in toggles:
