@@ -198,9 +198,14 @@ class AppState:
                 with contextlib.suppress(Exception):
                     dev.close()
             raise
-        self.robot, self.sensor, self.camera = opened
-        self.world = None
-        self.sim = False
+        self.attach(*opened)
+
+    def attach(self, robot: Any, sensor: Any, camera: Any, world: Any = None) -> None:
+        """Use already opened devices (worker thread); ``world`` set for a simulated cell."""
+        self.disconnect()
+        self.robot, self.sensor, self.camera, self.world = robot, sensor, camera, world
+        self.sim = world is not None
+        self.publish(robot.read_pose(), sensor.read())
         self.changed("devices")
 
     def disconnect(self) -> None:

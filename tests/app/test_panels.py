@@ -392,3 +392,39 @@ def test_a_reconnecting_tab_gets_the_current_state(tmp_path: Path) -> None:
         state.worker.stop()
         state.close_session()
         server.stop()
+
+
+def test_dashboard_drives_the_serial_drivers_over_emulated_devices(tmp_path: Path) -> None:
+    """Hardware path: GRBL and Keyence drivers over pty emulators of the simulated cell."""
+    from drivers.emulators.cell import CellEmulators
+    from drivers.grbl import GrblRobot
+    from drivers.keyence_il import KeyenceIL
+    from drivers.sim.devices import SimCameraDirect
+    from drivers.sim.world import SimWorld
+
+    workcell = load_workcell(None)
+    world = SimWorld(workcell, seed=11)
+    state = AppState(None, workcell, sim=False, session_path=tmp_path / "hw.db")
+    with CellEmulators(world) as emu:
+        state.worker.start()
+        try:
+            state.worker.call("attach", lambda: state.attach(
+                GrblRobot(emu.grbl.path, workcell.limits), KeyenceIL(emu.keyence.path),
+                SimCameraDirect(world)), 30)
+            assert not state.sim and state.connected
+            state.armed = True
+            jog.jog(state, "y", 1, 0.75, client_id=1).result(30)
+            assert world.true_pose.y == pytest.approx(0.75, abs=1e-3)
+            state.armed = False
+            progress = state.worker.call("acquire",
+                                         lambda: acquire.run_acquisition(state, 1), 120)
+            assert progress.state == "finished" and progress.done == 42
+            view = state.worker.call("solve", lambda: solve.run_solve(state), 60)
+            truth = world.truth()
+            for name, value, sigma in zip(view.calibration.names, view.calibration.values,
+                                          view.calibration.sigma, strict=True):
+                assert abs(value - truth[name]) <= 4 * sigma, (name, value, truth[name], sigma)
+        finally:
+            state.worker.stop()
+            state.close_session()
+            state.disconnect()
