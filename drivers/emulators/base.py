@@ -41,7 +41,8 @@ class Fault:
     """One injected fault: affects the next ``count`` matching events (``count=-1``: forever).
 
     ``match`` restricts it to received lines starting with that text (``None``: any line);
-    ``code``, ``data``, ``seconds`` and ``stall`` parametrise the kinds that use them.
+    the first ``skip`` matching events pass unharmed; ``code``, ``data``, ``seconds`` and
+    ``stall`` parametrise the kinds that use them.
     """
 
     kind: str
@@ -51,6 +52,7 @@ class Fault:
     data: bytes = b""
     seconds: float = 0.0
     stall: bool = False
+    skip: int = 0
     hits: int = 0
 
 
@@ -153,9 +155,10 @@ class PtyEmulator:
 
     # -- faults and log --------------------------------------------------------------------
     def inject(self, kind: str, count: int = 1, *, match: str | None = None, code: int = 0,
-               data: bytes = b"", seconds: float = 0.0, stall: bool = False) -> Fault:
+               data: bytes = b"", seconds: float = 0.0, stall: bool = False,
+               skip: int = 0) -> Fault:
         """Queue a fault (see the module and emulator docs for the kinds); returns it."""
-        fault = Fault(kind, count, match, code, data, seconds, stall)
+        fault = Fault(kind, count, match, code, data, seconds, stall, skip)
         with self.lock:
             self._faults.append(fault)
         return fault
@@ -168,6 +171,9 @@ class PtyEmulator:
         """Consume one use of the first active fault of one of ``kinds`` matching ``line``."""
         for fault in self._faults:
             if fault.kind in kinds and (fault.match is None or line.startswith(fault.match)):
+                if fault.skip > 0:
+                    fault.skip -= 1
+                    continue
                 fault.hits += 1
                 if fault.count > 0:
                     fault.count -= 1

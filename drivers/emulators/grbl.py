@@ -50,7 +50,10 @@ class _Segment:
 
 
 class GrblEmulator(PtyEmulator):
-    """Emulated GRBL 1.1 controller; ``move_time`` is seconds per move (float) or f(distance)."""
+    """Emulated GRBL 1.1 controller; ``move_time`` is seconds per move (float) or f(distance).
+
+    ``on_arrive(work_position)`` is called (emulator thread, lock held) at the end of each move.
+    """
 
     device = "GRBL"
     eol = b"\r\n"
@@ -58,8 +61,10 @@ class GrblEmulator(PtyEmulator):
 
     def __init__(self, *, move_time: float | Callable[[float], float] = 0.0,
                  start: Vec = (0.0, 0.0, 0.0, 0.0), wco: Vec = (0.0, 0.0, 0.0, 0.0),
-                 report: str = "mpos") -> None:
+                 report: str = "mpos",
+                 on_arrive: Callable[[Vec], None] | None = None) -> None:
         super().__init__()
+        self.on_arrive = on_arrive
         if report not in ("mpos", "wpos"):
             raise ValueError("report must be 'mpos' or 'wpos'")
         self.move_time = move_time
@@ -151,6 +156,8 @@ class GrblEmulator(PtyEmulator):
         if seg is not None and seg.done(now):
             self._mpos = seg.end
             self._segment = None
+            if self.on_arrive is not None:
+                self.on_arrive(tuple(m - o for m, o in zip(seg.end, self.wco, strict=True)))
         if self._segment is None and self._queue and self.state != "Alarm":
             end = self._queue.pop(0)
             self._segment = _Segment(self._mpos, end, now, self._duration(self._mpos, end))

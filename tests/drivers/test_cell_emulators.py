@@ -68,3 +68,41 @@ def test_emulate_cell_prints_both_paths():
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_session_pauses_on_an_unplugged_sensor_and_continues_after_replug(tmp_path):
+    """The Keyence port vanishes at the 31st read: the run pauses with a clear message; the
+    adapter comes back under the same name; resume completes the session with every pose
+    stored exactly once, each with the displacement and spot of its pose (within 5 sigma)."""
+    from app.acquisition import Runner, RunnerConfig
+    from app.session import Session
+    from calib_core.grid import paper_grid
+    from drivers.sim.devices import SimCameraDirect
+
+    world = SimWorld(load_workcell(), seed=5)
+    grid = paper_grid()
+    with CellEmulators(world) as cell:
+        cell.keyence.inject("vanish", match="SR", skip=30)
+        sensor_link = tmp_path / "ttyKEYENCE"
+        sensor_link.symlink_to(cell.keyence.path)
+        robot = GrblRobot(cell.grbl.path, world.workcell.limits, timeout=TIMEOUT)
+        sensor = KeyenceIL(str(sensor_link), timeout=TIMEOUT)
+        config = RunnerConfig(samples_per_pose=2, return_on_pause=True,
+                              driver_retry_delay_s=0.05)
+        with robot, sensor, Session.create(tmp_path / "s.db", grid) as session:
+            runner = Runner(session, robot, sensor, SimCameraDirect(world), config)
+            paused = runner.run()
+            assert paused.state == "paused" and paused.done == 15  # 2 reads per pose
+            assert "Keyence DL-RS1A port" in paused.message and "resume" in paused.message
+            sensor_link.unlink()
+            sensor_link.symlink_to(cell.keyence.replug())
+            runner.resume()
+            done = runner.run()
+            samples = session.samples()
+    assert done.state == "finished" and done.done == len(grid)
+    assert sorted(s.pose_index for s in samples) == list(range(len(grid)))  # no loss, no dup
+    camera_tol = 5 * world.workcell.noise.camera
+    for sample in samples:
+        hit = world.beam_hit(FlangePose(*grid.pose(sample.pose_index)))
+        assert sample.ok and sample.d == pytest.approx(hit.s, abs=TOL)
+        assert (sample.x_p, sample.y_p) == pytest.approx(tuple(hit.p[:2]), abs=camera_tol)
