@@ -331,6 +331,11 @@ class GrblRobot:
                                     f"{self.settle_timeout:g} s after the end of motion")
             time.sleep(0.02)
 
+    def describe(self) -> str:
+        """Connection summary stored with a session."""
+        return (f"GRBL 1.1 on {self.port} {self._link.baudrate} 8N1, feed {self.feed:g} mm/min, "
+                f"tolerance {self.tolerance:g}")
+
     def stop(self) -> None:
         """Feed hold ``!`` written at once (safe from any thread, even during a move)."""
         self._stop.set()

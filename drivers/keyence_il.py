@@ -162,6 +162,11 @@ class KeyenceIL:
                                        f"still running after {self.zero_timeout:g} s")
                 time.sleep(0.02)
 
+    def describe(self) -> str:
+        """Connection summary stored with a session."""
+        return (f"Keyence DL-RS1A on {self.port} {self._link.baudrate} 8N1, amplifier "
+                f"{self.amp_id:02d}, read {self.command}")
+
     def reconnect(self, port: str | None = None) -> None:
         """Reopen the serial port (after :class:`~drivers.serial_port.PortLost`)."""
         with self._lock:

@@ -43,6 +43,8 @@ def test_move_sends_exact_bytes_and_reads_back(grbl, robot):
     assert grbl.received_bytes == (b"?G90 G1 X10.000 Y-20.500 Z30.250 A45.000 F1000\n"
                                    b"G4 P0\n?")
     assert _close(robot.read_pose(), TARGET)
+    assert robot.describe() == (f"GRBL 1.1 on {grbl.path} 115200 8N1, feed 1000 mm/min, "
+                                "tolerance 0.02")
 
 
 @pytest.mark.parametrize("report", ["mpos", "wpos"])

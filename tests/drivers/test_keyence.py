@@ -22,6 +22,7 @@ def test_read_sends_exact_bytes_and_returns_mm(keyence, sensor, physics):
     assert reading.value == pytest.approx(1.234, abs=1e-9)
     assert reading.raw == "+01.234"
     assert keyence.received_bytes == b"SR,00,037\r\n"
+    assert sensor.describe() == f"Keyence DL-RS1A on {keyence.path} 9600 8N1, amplifier 00, read SR"
     physics.value = -12.5
     assert sensor.read().value == pytest.approx(-12.5, abs=1e-9)
 
