@@ -129,6 +129,9 @@ class GrblRobot:
     ``feed`` mm/min; ``timeout`` s per reply (re-sent ``retries`` times); ``move_timeout`` s for
     the end of a move (None: 10 s + 3x the nominal duration); ``settle_timeout`` s to see Idle
     at the target within ``tolerance`` (mm, deg) after the ``G4 P0`` ``ok``.
+
+    ``MPos`` reports are converted with the last ``WCO`` seen (zero until one arrives); with
+    non-zero work offsets set GRBL's ``$10=0`` so that it reports ``WPos``.
     """
 
     def __init__(self, port: str, limits: SoftLimits, *, baudrate: int = 115200,
