@@ -51,8 +51,13 @@ def detection_rms(r: FrameRenderer, spots: list[Spot], speckle: float | None = N
 
 # -- accuracy ---------------------------------------------------------------------------------
 
-def test_detection_rms_below_0_05_px_on_default_frames(renderer):
-    """Default cell: speckle 3 %, read noise 1.5 grey levels, spot sigma 3 px -> < 0.05 px."""
+def test_detection_rms_below_0_05_px_on_default_frames():
+    """Default cell: speckle 3 %, read noise 1.5 grey levels, spot sigma 3 px -> < 0.05 px.
+
+    Its own renderer, so the noise drawn does not depend on which tests ran before (0.035-0.040
+    px over renderer seeds 0-9).
+    """
+    renderer = FrameRenderer(CAMERA, seed=5)
     rms = detection_rms(renderer, random_spots(renderer, 80, seed=1))
     assert rms < 0.05
 
