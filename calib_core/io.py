@@ -9,8 +9,9 @@ excluded.
 from __future__ import annotations
 
 import io as _io
+import json
 import tomllib
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -161,7 +162,17 @@ def load_toml(path: str | Path) -> dict[str, object]:
         raise InputError(f"{path}: not valid TOML ({exc})") from None
 
 
-def as_mapping(value: object, source: str) -> Mapping[str, object]:
-    if not isinstance(value, Mapping):
-        raise InputError(f"{source}: expected a table")
-    return value
+def load_json_object(path: str | Path) -> dict[str, object]:
+    """Read a JSON file holding one object; errors name the file."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read ({exc})") from None
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{path}: not valid JSON ({exc.msg}, line {exc.lineno})") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: expected a JSON object")
+    return data

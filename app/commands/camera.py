@@ -104,22 +104,6 @@ def _read_image(path: str) -> Any:
     return image
 
 
-def _read_json(path: str) -> dict[str, Any]:
-    import json
-
-    from calib_core.errors import InputError
-
-    try:
-        data = json.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such file") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(f"{path}: cannot read the JSON file ({exc})") from None
-    if not isinstance(data, dict):
-        raise InputError(f"{path}: expected a JSON object")
-    return data
-
-
 def _pattern(text: str) -> tuple[int, int]:
     from calib_core.errors import InputError
 
@@ -138,13 +122,14 @@ def _calibrate(args: argparse.Namespace) -> int:
     import numpy as np
 
     from calib_core.errors import InputError
+    from calib_core.io import load_json_object
     from drivers.camera_cv import OpenCVCamera, PixelToPlate, calibrate_chessboard
     from drivers.sim.render import Chessboard
 
     k = dist = None
     if args.intrinsics:
         prior = PixelToPlate.from_json_dict({"homography": np.eye(3).tolist(),
-                                             **_read_json(args.intrinsics)})
+                                             **load_json_object(args.intrinsics)})
         k, dist = prior.camera_matrix, prior.dist_coeffs
     if args.sim:
         from drivers.sim.devices import SimCamera
@@ -189,6 +174,7 @@ def _calibrate(args: argparse.Namespace) -> int:
 
 def _spot(args: argparse.Namespace) -> int:
     from calib_core.errors import InputError
+    from calib_core.io import load_json_object
     from drivers.camera_cv import (
         OpenCVCamera,
         PixelToPlate,
@@ -196,7 +182,7 @@ def _spot(args: argparse.Namespace) -> int:
         measurement_from,
     )
 
-    mapping = PixelToPlate.from_json_dict(_read_json(args.calib))
+    mapping = PixelToPlate.from_json_dict(load_json_object(args.calib))
     if args.samples < 1 or args.background_frames < 0:
         raise InputError("--samples must be >= 1 and --background-frames >= 0")
     if args.image:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
 HELP = """\
 Measure with a calibrated sensor (seed eq 16-20). Each scan row is a flange pose plus a reading:
@@ -74,22 +73,9 @@ def _common(p: argparse.ArgumentParser, calib_required: bool) -> None:
 def load_calibration(path: str):
     """The :class:`~calib_core.calibrate.BeamCalibration` in a ``solve --json`` file."""
     from calib_core.calibrate import BeamCalibration
-    from calib_core.errors import InputError
+    from calib_core.io import load_json_object
 
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read ({exc})") from None
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: not valid JSON ({exc.msg}, line {exc.lineno})") from None
-    if not isinstance(data, dict):
-        raise InputError(f"{path}: expected a JSON object (the output of 'lasercal solve "
-                         "--json')")
-    return BeamCalibration.from_json_dict(data, path)
+    return BeamCalibration.from_json_dict(load_json_object(path), path)
 
 
 def _check_model(calib, poses, source: str) -> None:

@@ -191,19 +191,6 @@ def read_scans(path: Path, calib: Any) -> tuple[Any, tuple[str, ...]]:
                             .to_numpy(), calib, noise=None)
 
 
-def _read_json(path: Path) -> Any:
-    from calib_core.errors import InputError
-
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read ({exc})") from None
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: not valid JSON ({exc.msg}, line {exc.lineno})") from None
-
-
 def _write_json(path: Path, data: Any) -> None:
     path.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
 
@@ -262,10 +249,11 @@ def run_simulate(args: argparse.Namespace) -> int:
 def _manifest(root: Path, nominal_toml: str | None) -> dict[str, Any]:
     """The manifest of ``root``, or one built from the default file names and ``nominal_toml``."""
     from calib_core.errors import InputError
+    from calib_core.io import load_json_object
     from drivers.sim.platform import load_spec
 
     if (root / MANIFEST).exists():
-        man = _read_json(root / MANIFEST)
+        man = load_json_object(root / MANIFEST)
         if not isinstance(man, dict) or man.get("format") != FORMAT:
             raise InputError(f"{root / MANIFEST}: not a platform campaign manifest "
                              f"(expected format {FORMAT!r})")
@@ -289,6 +277,7 @@ def load_campaign(directory: str, calib_file: str | None = None,
     """Nominal parameters, identification and validation pose sets of a campaign directory."""
     from calib_core.calibrate import BeamCalibration
     from calib_core.errors import InputError
+    from calib_core.io import load_json_object
     from calib_core.platform import params_from_mapping
 
     root = Path(directory)
@@ -313,7 +302,7 @@ def load_campaign(directory: str, calib_file: str | None = None,
         if not name:
             raise InputError(f"{root}: scans need a beam calibration (--calib H.json)")
         calib_path = Path(calib_file) if calib_file else root / str(name)
-        calib = BeamCalibration.from_json_dict(_read_json(calib_path), str(calib_path))
+        calib = BeamCalibration.from_json_dict(load_json_object(calib_path), str(calib_path))
     for key in ("train", "validation"):
         if not man.get(key):
             raise InputError(f"{root / MANIFEST}: missing {key!r} file name")

@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
-from typing import Any
 
 HELP = """\
 Write a calibration report an engineer can review and sign: header (what, when, operator note,
@@ -53,25 +51,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _read_json(path: str) -> Any:
-    from calib_core.errors import InputError
-
-    try:
-        return json.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read ({exc})") from None
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: not valid JSON ({exc.msg}, line {exc.lineno})") from None
-
-
 def run(args: argparse.Namespace) -> int:
     from app.commands.solve import load_calibration_data, load_noise
     from app.report import render_bundle, write_report
     from app.report.data import build_report, evaluate_calibration, section_from_json, source_meta
     from calib_core.calibrate import BeamCalibration, solve
     from calib_core.errors import InputError
+    from calib_core.io import load_json_object
 
     if args.calib and (args.holdout is not None or args.noise):
         raise InputError("--calib evaluates a given calibration: --holdout and --noise do not "
@@ -81,9 +67,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"{out}: directory {out.parent} does not exist")
     sections = []
     for path in args.measure:
-        data = _read_json(path)
-        if not isinstance(data, dict):
-            raise InputError(f"{path}: expected a JSON object")
+        data = load_json_object(path)
         sections.append(section_from_json(data, path))
     if args.platform:
         from app.commands.platform import calibrate_campaign
@@ -93,9 +77,7 @@ def run(args: argparse.Namespace) -> int:
     data = load_calibration_data(args.source)
     meta = source_meta(args.source, args.note)
     if args.calib:
-        raw = _read_json(args.calib)
-        if not isinstance(raw, dict):
-            raise InputError(f"{args.calib}: expected a JSON object")
+        raw = load_json_object(args.calib)
         result = evaluate_calibration(BeamCalibration.from_json_dict(raw, args.calib), data, raw)
         meta.update(calibration_mode="evaluated",
                     calibration_source=f"given: {args.calib} (not fitted to this data; "
