@@ -13,6 +13,7 @@ import json
 import tomllib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -148,18 +149,32 @@ def load_dataset(path: str | Path, *, need_spot: bool = True, min_rows: int = 1)
                               min_rows=min_rows)
 
 
-def load_toml(path: str | Path) -> dict[str, object]:
-    """Read a TOML file; errors name the file."""
-    path = Path(path)
+def load_toml(path: str | Path | None, default: str | None = None, what: str = "file"
+              ) -> tuple[dict[str, object], str]:
+    """Read a TOML file, or ``static_data/<default>`` when ``path`` is None.
+
+    Returns the document and its name for messages; errors name the file (``what`` says what
+    kind of file was expected, e.g. "workcell file").
+    """
+    if path is None:
+        if default is None:
+            raise InputError(f"no {what} given")
+        source, read = f"static_data/{default}", resources.files("static_data").joinpath(default)
+    else:
+        source, read = str(path), Path(path)
     try:
-        with path.open("rb") as fh:
-            return tomllib.load(fh)
+        text = read.read_bytes().decode("utf-8")
+        return tomllib.loads(text), source
     except FileNotFoundError:
-        raise InputError(f"{path}: no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read ({exc})") from None
+        raise InputError(f"{source}: no such {what}") from None
+    except IsADirectoryError:
+        raise InputError(f"{source}: is a directory, expected a {what}") from None
+    except OSError as exc:
+        raise InputError(f"{source}: cannot read ({exc.strerror or exc})") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{source}: not a UTF-8 text file") from None
     except tomllib.TOMLDecodeError as exc:
-        raise InputError(f"{path}: not valid TOML ({exc})") from None
+        raise InputError(f"{source}: not valid TOML ({exc})") from None
 
 
 def load_json_object(path: str | Path) -> dict[str, object]:

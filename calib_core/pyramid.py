@@ -15,7 +15,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -80,10 +79,7 @@ def load_geometry(path: str | Path | None = None) -> PyramidGeometry:
     """Read a pyramid TOML file (default: the packaged ``static_data/pyramid.toml``)."""
     from calib_core.io import load_toml
 
-    if path is None:
-        with resources.as_file(resources.files("static_data") / "pyramid.toml") as p:
-            return PyramidGeometry.from_mapping(load_toml(p), "static_data/pyramid.toml")
-    return PyramidGeometry.from_mapping(load_toml(path), str(path))
+    return PyramidGeometry.from_mapping(*load_toml(path, "pyramid.toml", "pyramid file"))
 
 
 @dataclass(frozen=True)

@@ -59,7 +59,7 @@ def load_noise(path: str | None) -> NoiseModel:
     from calib_core.io import load_toml
     from calib_core.noise import NoiseModel
 
-    return NoiseModel() if path is None else NoiseModel.from_mapping(load_toml(path), path)
+    return NoiseModel() if path is None else NoiseModel.from_mapping(load_toml(path)[0], path)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -11,10 +11,8 @@ with the pose, as a pyramid fit would report it.
 
 from __future__ import annotations
 
-import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from calib_core.calibrate import BeamCalibration
 from calib_core.errors import InputError
+from calib_core.io import load_toml
 from calib_core.model import SCHOENFLIES_PARAMS, rotation_about_z
 from calib_core.noise import NoiseModel
 from calib_core.platform import PoseSet, forward, params_from_mapping
@@ -92,19 +91,7 @@ def spec_from_mapping(data: Mapping[str, Any], source: str = "platform.toml") ->
 
 def load_spec(path: str | Path | None = None) -> PlatformSpec:
     """Read ``path`` or the packaged ``static_data/platform.toml``."""
-    try:
-        if path is None:
-            text = resources.files("static_data").joinpath("platform.toml").read_text("utf-8")
-            source = "static_data/platform.toml"
-        else:
-            text, source = Path(path).read_text("utf-8"), str(path)
-        data = tomllib.loads(text)
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read ({exc})") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(f"{source}: not valid TOML ({exc})") from None
+    data, source = load_toml(path, "platform.toml", "platform file")
     return spec_from_mapping(data, source)
 
 

@@ -9,16 +9,15 @@ key. Units: mm and degrees.
 from __future__ import annotations
 
 import math
-import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from calib_core.errors import InputError
+from calib_core.io import load_toml
 from calib_core.noise import NoiseModel
 from drivers.base import SoftLimits
 
@@ -405,24 +404,5 @@ def workcell_from_mapping(data: Mapping[str, Any], source: str = "workcell") -> 
 
 def load_workcell(path: str | Path | None = None) -> Workcell:
     """Read a workcell TOML file; ``None`` loads the packaged default (the seed's cell)."""
-    if path is None:
-        ref = resources.files("static_data").joinpath(DEFAULT_WORKCELL)
-        source, raw = f"static_data/{DEFAULT_WORKCELL}", ref.read_bytes()
-    else:
-        p = Path(path)
-        source = str(p)
-        try:
-            raw = p.read_bytes()
-        except FileNotFoundError:
-            raise InputError(f"{p}: no such workcell file") from None
-        except IsADirectoryError:
-            raise InputError(f"{p}: is a directory, expected a workcell TOML file") from None
-        except OSError as exc:
-            raise InputError(f"{p}: cannot read ({exc.strerror or exc})") from None
-    try:
-        data = tomllib.loads(raw.decode("utf-8"))
-    except UnicodeDecodeError:
-        raise InputError(f"{source}: not a UTF-8 text file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(f"{source}: not valid TOML ({exc})") from None
+    data, source = load_toml(path, DEFAULT_WORKCELL, "workcell file")
     return workcell_from_mapping(data, source)
