@@ -84,6 +84,39 @@ def _reject(reason: str, **kw: Any) -> SpotDetection:
     return SpotDetection(False, reason=reason, **kw)
 
 
+#: Reason of a detection refused because the camera delivered the previous image again.
+FROZEN_FRAME = "frozen frame: the camera sent the same image twice (stalled stream or driver)"
+
+
+class FrozenFrameCheck:
+    """Detects a frozen camera: a frame bit-for-bit equal to the previous one.
+
+    A live sensor's read noise makes two real frames differ; an identical frame means a stalled
+    stream (a driver re-delivering its last buffer). Compares a BLAKE2b digest of the pixels,
+    shape and dtype with the previous frame's.
+    """
+
+    def __init__(self) -> None:
+        self._last: bytes | None = None
+
+    def is_frozen(self, frame: np.ndarray) -> bool:
+        """True when ``frame`` equals the previous frame given here; remembers ``frame``."""
+        import hashlib
+
+        h = hashlib.blake2b(np.ascontiguousarray(frame).data, digest_size=16)
+        h.update(f"{frame.shape}{frame.dtype}".encode())
+        digest = h.digest()
+        frozen, self._last = digest == self._last, digest
+        return frozen
+
+    def detect(self, frame: np.ndarray, background: np.ndarray | None,
+               config: DetectorConfig) -> SpotDetection:
+        """:func:`detect_spot`, or a rejection with :data:`FROZEN_FRAME`."""
+        if self.is_frozen(frame):
+            return _reject(FROZEN_FRAME)
+        return detect_spot(frame, background, config)
+
+
 def _grey(frame: np.ndarray) -> np.ndarray:
     if frame.ndim == 3:
         code = cv2.COLOR_BGRA2GRAY if frame.shape[2] == 4 else cv2.COLOR_BGR2GRAY
@@ -465,6 +498,7 @@ class OpenCVCamera:
         self.config = config or DetectorConfig()
         self.average = max(1, int(average))
         self.background: np.ndarray | None = None
+        self._frozen = FrozenFrameCheck()
         self._cap = cv2.VideoCapture(source)
         if not self._cap.isOpened():
             raise DriverError(f"camera {source!r} cannot be opened; check the index or URL")
@@ -491,7 +525,8 @@ class OpenCVCamera:
         return self.mapping
 
     def detect(self) -> SpotDetection:
-        return detect_spot(self.grab(), self.background, self.config)
+        """Grab and detect; a frame identical to the previous one is refused (frozen)."""
+        return self._frozen.detect(self.grab(), self.background, self.config)
 
     def measure_spot(self) -> SpotMeasurement:
         return measure_average(self.detect, self.mapping, self.average)

@@ -18,17 +18,17 @@ from drivers.base import (
 )
 from drivers.camera_cv import (
     DetectorConfig,
+    FrozenFrameCheck,
     PixelToPlate,
     SpotDetection,
     calibrate_chessboard,
-    detect_spot,
     measure_average,
 )
 from drivers.sim.render import Chessboard, FrameRenderer, Spot
 from drivers.sim.world import SimWorld, pose_rotation
 
 #: Faults a :class:`SimCamera` can inject into its frames.
-CAMERA_FAULTS = frozenset({"no_spot", "saturate", "second_reflection"})
+CAMERA_FAULTS = frozenset({"no_spot", "saturate", "second_reflection", "freeze"})
 
 
 class SimRobot:
@@ -138,8 +138,8 @@ class SimCamera:
     :func:`drivers.camera_cv.detect_spot` finds it against a laser-off background frame and
     ``mapping`` turns pixels into plate mm. ``mapping`` starts as the exact inverse of the
     camera model; :meth:`calibrate` replaces it by a chessboard fit, as on the hardware.
-    ``faults`` (a subset of :data:`CAMERA_FAULTS`) injects an empty frame, a saturated spot or
-    a second reflection.
+    ``faults`` (a subset of :data:`CAMERA_FAULTS`) injects an empty frame, a saturated spot,
+    a second reflection, or a frozen stream (``freeze``: the previous frame again).
     """
 
     def __init__(self, world: SimWorld, seed: int | None = 0,
@@ -156,6 +156,8 @@ class SimCamera:
         self.mapping = PixelToPlate(self.spec.camera_matrix(), self.spec.dist_coeffs(),
                                     np.linalg.inv(self.spec.homography()))
         self.last_truth_px: np.ndarray | None = None
+        self._last_frame: np.ndarray | None = None
+        self._frozen = FrozenFrameCheck()
         self._closed = False
 
     def set_faults(self, faults: Iterable[str]) -> None:
@@ -191,6 +193,12 @@ class SimCamera:
     def grab(self) -> np.ndarray:
         if self._closed:
             raise DriverError("simulated camera is closed")
+        if "freeze" in self.faults and self._last_frame is not None:
+            return self._last_frame.copy()
+        self._last_frame = self._render()
+        return self._last_frame
+
+    def _render(self) -> np.ndarray:
         xy = self.world.camera_spot()
         self.last_truth_px = None
         if xy is None or "no_spot" in self.faults:
@@ -205,7 +213,8 @@ class SimCamera:
         return self.renderer.render(spots)
 
     def detect(self) -> SpotDetection:
-        return detect_spot(self.grab(), self.background, self.config)
+        """Grab and detect; a frame identical to the previous one is refused (frozen)."""
+        return self._frozen.detect(self.grab(), self.background, self.config)
 
     def measure_spot(self) -> SpotMeasurement:
         return measure_average(self.detect, self.mapping, self.average)
