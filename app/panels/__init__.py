@@ -9,11 +9,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from app.panels import acquire, export, grid, jog, setup, solve
+from app.panels import acquire, export, grid, jog, measure, setup, solve
 from app.panels.state import AppState
+from app.panels.upload import refuse_oversized
 
 TABS = (("Setup", setup), ("Jog", jog), ("Grid", grid), ("Acquire", acquire),
-        ("Solve", solve), ("Export", export))
+        ("Solve", solve), ("Measure", measure), ("Export", export))
 
 
 def build_dashboard(server: Any, workcell: Any, *, sim: bool = True,
@@ -35,6 +36,7 @@ def build_dashboard(server: Any, workcell: Any, *, sim: bool = True,
     show_control()
     app.on_change("control", show_control)
     server.on_client_disconnect(lambda client: app.release_control(client.client_id))
+    refuse_oversized(server, app)
     tabs = gui.add_tab_group()
     for title, module in TABS:
         with tabs.add_tab(title):

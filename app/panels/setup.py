@@ -44,6 +44,7 @@ def calibrate_camera(app: AppState, pattern: tuple[int, int] | None = None,
         mapping = cam.calibrate(board)
     else:
         mapping = cam.calibrate(board.pattern, board.corners_mm())
+        app.camera_mapping = mapping        # kept for the next hardware connect
     return (f"camera calibrated from {mapping.n_corners or board.pattern[0] * board.pattern[1]} "
             f"corners: reprojection rms {mapping.rms_px:.3g} px ({mapping.rms_mm * 1000:.3g} µm)")
 
@@ -57,6 +58,9 @@ def build(gui: Any, app: AppState) -> None:
     robot_port = gui.add_text("Robot port (GRBL)", "/dev/ttyUSB0")
     sensor_port = gui.add_text("Sensor port (Keyence)", "/dev/ttyUSB1")
     camera = gui.add_text("Camera (index or URL)", "0")
+    camera_calib = gui.add_text("Camera calibration JSON", "",
+                                hint="pixel -> plate mapping (camera_matrix, dist_coeffs, "
+                                     "homography); empty: the last chessboard calibration")
     connect = gui.add_button("Connect", icon="plug-connected")
     status = gui.add_markdown("")
     zero = gui.add_button("Sensor zero")
@@ -89,7 +93,7 @@ def build(gui: Any, app: AppState) -> None:
             app.worker.submit("connect", app.connect_sim)
         else:
             app.worker.submit("connect", lambda: app.connect_hardware(
-                robot_port.value, sensor_port.value, camera.value))
+                robot_port.value, sensor_port.value, camera.value, camera_calib.value))
 
     @zero.on_click
     def _(_: Any) -> None:

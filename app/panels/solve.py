@@ -38,6 +38,7 @@ class SolveView:
     seconds: float = 0.0
     robust: bool = True
     number: int = 0
+    dataset: Any = None             # the rows solved (excluded poses left out), for the report
 
 
 def solve_frame(frame: pd.DataFrame, excluded: set[int] | frozenset[int], noise: Any,
@@ -66,7 +67,8 @@ def solve_frame(frame: pd.DataFrame, excluded: set[int] | frozenset[int], noise:
     measured = np.column_stack([xy, alpha * xy[:, 0] + beta * xy[:, 1] + delta])
     return SolveView(cal, pose_index, used, errors, points, measured,
                      cal.point_covariance(data.poses, data.d), flagged,
-                     frozenset(int(i) for i in excluded), time.perf_counter() - t0, robust)
+                     frozenset(int(i) for i in excluded), time.perf_counter() - t0, robust,
+                     dataset=data.subset(np.flatnonzero(use)))
 
 
 def params_table(cal: Any, truth: dict[str, float] | None = None) -> str:
@@ -124,14 +126,46 @@ def residual_figures(view: SolveView) -> tuple[Any, Any]:
     return hist, scatter
 
 
+def load_data_csv(app: AppState, name: str, content: bytes) -> str:
+    """Use an uploaded calibration data CSV (solve format) instead of the session (worker).
+
+    Validated completely (:mod:`app.panels.upload`) before the state changes; rows get
+    ``pose_index`` = row number unless the file has a valid one.
+    """
+    from app.panels.upload import display_name, upload_table
+    from calib_core.errors import InputError
+    from calib_core.io import dataset_from_frame, numeric_columns
+
+    shown = display_name(name)
+    frame = upload_table(name, content)
+    data = dataset_from_frame(frame, shown, need_spot=True, min_rows=3)
+    frame = frame.reset_index(drop=True)
+    if "pose_index" in frame.columns:
+        index = numeric_columns(frame, ("pose_index",), shown)[:, 0]
+        if np.any(index != np.round(index)) or len(set(index.tolist())) != len(index):
+            raise InputError(f"{shown}: column pose_index must hold distinct integers")
+        frame["pose_index"] = index.astype(int)
+    else:
+        frame["pose_index"] = np.arange(len(frame))
+    app.data_frame, app.data_source = frame, shown
+    app.excluded, app.flagged = set(), set()
+    app.calibration = app.solve_view = None
+    app.changed("data")
+    return f"{shown}: {len(data)} poses loaded; click 'Solve H'"
+
+
 def run_solve(app: AppState, robust: bool = True) -> SolveView:
-    """Solve the open session (worker thread) and publish the result."""
+    """Solve the uploaded data CSV, else the open session (worker thread); publish the result."""
     from calib_core.errors import InputError
 
-    if app.session is None:
-        raise InputError("no session: run an acquisition or start with --session FILE.db")
-    view = solve_frame(app.session.frame(), app.excluded, app.workcell.noise, robust=robust,
-                       source=str(app.session_path))
+    if app.data_frame is not None:
+        frame, source = app.data_frame, str(app.data_source)
+    elif app.session is not None:
+        frame, source = app.session.frame(), str(app.session_path)
+    else:
+        raise InputError("no session: run an acquisition, start with --session FILE.db or "
+                         "load a data CSV")
+    view = solve_frame(frame, app.excluded, app.workcell.noise, robust=robust, source=source)
     app.solve_count += 1
     view = dataclasses.replace(view, number=app.solve_count)
     app.calibration = view.calibration
@@ -168,7 +202,27 @@ def toggle_pose(app: AppState, pose: int, use: bool) -> SolveView:
     return run_solve(app, robust=False)
 
 
+def data_markdown(app: AppState) -> str:
+    """Which data 'Solve H' uses."""
+    if app.data_frame is not None:
+        return f"data: uploaded file **{app.data_source}** ({len(app.data_frame)} poses)"
+    if app.session_path is not None:
+        return f"data: session {app.session_path.name}"
+    return "data: none yet (acquire, or load a data CSV)"
+
+
 def build(gui: Any, app: AppState) -> None:
+    from app.panels.upload import add_upload
+
+    data_md = gui.add_markdown(data_markdown(app))
+    add_upload(gui, app, "Load data CSV", lambda name, content: load_data_csv(app, name, content),
+               hint="Solve a measurement CSV (x_o,y_o,z_o,theta_deg|qw..qz,d,x_p,y_p) instead "
+                    "of the session", mime_type=".csv,text/csv,text/plain")
+
+    def show_data() -> None:
+        data_md.content = data_markdown(app)
+    app.on_change("data", show_data)
+    app.on_change("session", show_data)
     solve_btn = gui.add_button("Solve H", color="blue", icon="calculator")
     if app.scene is not None:
         app.scene.legend = gui.add_html("<small>spots: grey until solved</small>")
@@ -191,6 +245,7 @@ def build(gui: Any, app: AppState) -> None:
     def refresh() -> None:
         view: SolveView | None = app.solve_view
         if view is None:
+            params.content = summary.content = ""
             return
         truth = app.world.truth() if app.sim and app.world is not None else None
         params.content = params_table(view.calibration, truth)
@@ -223,6 +278,7 @@ def build(gui: Any, app: AppState) -> None:
             app.last_solve_s = time.perf_counter() - clicked_at[0]
             clicked_at[0] = 0.0
     app.on_change("solve", refresh)
+    app.on_change("data", refresh)
 
     @solve_btn.on_click
     def _(_: Any) -> None:

@@ -119,6 +119,11 @@ class AppState:
         self.world: Any = None
         self.calibration: Any = None
         self.solve_view: Any = None
+        self.data_frame: Any = None          # an uploaded calibration data CSV (Solve tab)
+        self.data_source: str | None = None
+        self.measure_calibration: Any = None  # an uploaded calibration JSON (Measure tab)
+        self.measurements: dict[str, dict[str, Any]] = {}   # latest result per Measure kind
+        self.camera_mapping: Any = None      # pixel -> plate of the hardware camera
         self.excluded: set[int] = set()
         self.flagged: set[int] = set()
         self.messages: deque[tuple[float, str, str, str]] = deque(maxlen=200)
@@ -178,27 +183,45 @@ class AppState:
         self.publish(self.robot.read_pose(), self.sensor.read())
         self.changed("devices")
 
-    def connect_hardware(self, robot_port: str, sensor_port: str, camera: str) -> None:
-        """Connect the GRBL robot, Keyence sensor and OpenCV camera (worker thread)."""
+    def connect_hardware(self, robot_port: str, sensor_port: str, camera: str,
+                         camera_calib: str = "") -> None:
+        """Connect the GRBL robot, Keyence sensor and OpenCV camera (worker thread).
+
+        ``camera`` is a device index ("0" -> 0) or a URL; ``camera_calib`` a camera calibration
+        JSON (``PixelToPlate``); empty: the last chessboard result, else uncalibrated.
+        """
+        from app.panels.upload import read_json_file
+
         try:
-            from drivers.camera_cv import OpenCVCamera
+            from drivers.camera_cv import OpenCVCamera, PixelToPlate
             from drivers.grbl import GrblRobot
             from drivers.keyence_il import KeyenceIL
         except ImportError as exc:
             raise DriverError(f"hardware driver not available in this installation ({exc})"
                               ) from None
+        mapping = self.camera_mapping
+        if camera_calib.strip():
+            mapping = PixelToPlate.from_json_dict(read_json_file(camera_calib.strip()))
+        source = camera.strip()
+        if not source:
+            raise InputError("give the camera index (e.g. 0) or URL")
         self.disconnect()
         opened: list[Any] = []
         try:
-            opened.append(GrblRobot(robot_port, self.workcell.limits))
-            opened.append(KeyenceIL(sensor_port))
-            opened.append(OpenCVCamera(int(camera) if camera.isdigit() else camera))
+            opened.append(GrblRobot(robot_port.strip(), self.workcell.limits))
+            opened.append(KeyenceIL(sensor_port.strip()))
+            opened.append(OpenCVCamera(int(source) if source.isdigit() else source,
+                                       mapping=mapping))
         except BaseException:
             for dev in opened:
                 with contextlib.suppress(Exception):
                     dev.close()
             raise
+        self.camera_mapping = mapping
         self.attach(*opened)
+        if mapping is None:
+            self.notify("camera", "camera not calibrated: run the chessboard calibration or "
+                        "give a camera calibration JSON", "warning")
 
     def attach(self, robot: Any, sensor: Any, camera: Any, world: Any = None) -> None:
         """Use already opened devices (worker thread); ``world`` set for a simulated cell."""
@@ -317,6 +340,7 @@ class AppState:
         except InputError:
             raise
         self.session, self.session_path = session, Path(path)
+        self.data_frame = self.data_source = None
         self.grid = session.grid
         self.changed("grid")
         self.changed("session")
@@ -356,6 +380,7 @@ class AppState:
                                                "sensor": type(self.sensor).__name__,
                                                "camera": type(self.camera).__name__})
         self.session_path = path
+        self.data_frame = self.data_source = None
         self.excluded, self.flagged = set(), set()
         self.calibration = self.solve_view = None
         self.changed("session")
