@@ -8,10 +8,11 @@ as *skipped* with the reason. Every sample is committed to the session at once.
 
 Control (thread-safe, from any thread): :meth:`Runner.pause` (after the pose in flight),
 :meth:`Runner.resume`, :meth:`Runner.abort` (the pose in flight is dropped, never half-stored).
-A :class:`~drivers.base.DriverError` is retried ``driver_retries`` times on the same pose, then
-pauses the run with the message (logged in the session's ``events``); after :meth:`resume` the
-pose is tried again. ``max_skips_in_a_row`` skipped poses in a row (a sensor stuck out of range,
-a camera that sees nothing) also pause the run; the last of them is not stored, so it is
+A :class:`~drivers.base.DriverError` is retried ``driver_retries`` times on the same pose (not
+one marked ``retryable = False``, e.g. a GRBL alarm), then pauses the run with the message
+(logged in the session's ``events``); after :meth:`resume` the pose is tried again.
+``max_skips_in_a_row`` skipped poses in a row (a sensor stuck out of range, a camera that
+sees nothing) also pause the run; the last of them is not stored, so it is
 measured again after :meth:`resume` (0: never pause for skips). With ``return_on_pause``
 :meth:`Runner.run` returns when paused (so the thread that owns the drivers is free, e.g. to
 reconnect them with :meth:`Runner.set_devices`); calling :meth:`Runner.run` again continues.
@@ -276,10 +277,10 @@ class Runner:
                 readback = self._move(target)
                 sample = self._read_valid(index, target, readback)
                 break
-            except DriverError:
+            except DriverError as exc:
                 if (attempt == cfg.driver_retries or not self._go.is_set()
-                        or self._abort.is_set()):
-                    raise  # never move again after a STOP (pause or abort requested)
+                        or self._abort.is_set() or not exc.retryable):
+                    raise  # never move again after a STOP; an alarm is reported at once
                 self._wait(cfg.driver_retry_delay_s)
         self._wait(0.0)  # an abort during the reading drops the sample
         if sample.ok:

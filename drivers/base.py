@@ -16,7 +16,13 @@ from calib_core.errors import LasercalError
 
 
 class DriverError(LasercalError):
-    """A device failed or answered with an error; the message says which and what to do."""
+    """A device failed or answered with an error; the message says which and what to do.
+
+    ``retryable`` False: repeating the same operation cannot help (an alarm lock, a refused
+    target), so callers report it at once instead of retrying and masking the cause.
+    """
+
+    retryable: bool = True
 
 
 class DeviceTimeout(DriverError):
@@ -25,6 +31,8 @@ class DeviceTimeout(DriverError):
 
 class MotionRefused(DriverError):
     """A motion target was refused before anything was sent (soft limits, step limit, disarmed)."""
+
+    retryable = False
 
 
 @dataclass(frozen=True)

@@ -62,6 +62,8 @@ class GrblError(DriverError):
 class GrblAlarm(DriverError):
     """The controller raised ``ALARM:N`` or is in the Alarm state (motion locked)."""
 
+    retryable = False  # locked until the operator unlocks: a retry only hides the cause
+
 
 class MotionStopped(DriverError):
     """A move was interrupted by :meth:`GrblRobot.stop` (feed hold)."""
