@@ -166,14 +166,30 @@ def _connect(path: Path) -> sqlite3.Connection:
     return conn
 
 
-def _check_header(path: Path) -> None:
-    """Refuse a missing, empty or non-SQLite file (SQLite itself would open it as empty)."""
+#: Page sizes SQLite allows, the default (4096, what sessions use) first.
+PAGE_SIZES = (4096, 1024, 2048, 8192, 16384, 32768, 65536, 512)
+
+
+def _body_page_sizes(size: int, page1: bytes) -> list[int]:
+    """Page sizes for which a file without its SQLite header still looks like a database.
+
+    Page 1's b-tree header follows the 100-byte file header: its type byte is 0x0D (a table
+    leaf) or 0x05 (interior) and the file is a whole number of pages.
+    """
+    if len(page1) <= 100 or page1[100] not in (0x05, 0x0D):
+        return []
+    return [ps for ps in PAGE_SIZES if size >= 2 * ps and size % ps == 0]
+
+
+def _check_header(path: Path, recover: bool = True) -> None:
+    """Refuse a missing, empty or non-SQLite file (SQLite itself would open it as empty);
+    a database whose 100-byte header was overwritten is reported damaged (and salvaged)."""
     try:
         if path.is_dir():
             raise InputError(f"{path}: is a directory, expected a session file (.db)")
         size = path.stat().st_size
         with path.open("rb") as fh:
-            head = fh.read(100)
+            head = fh.read(112)
     except FileNotFoundError:
         raise InputError(f"{path}: no such session file") from None
     except OSError as exc:
@@ -181,6 +197,8 @@ def _check_header(path: Path) -> None:
     if size == 0:
         raise InputError(f"{path}: empty file, not a lasercal session")
     if not head.startswith(SQLITE_MAGIC):
+        if _body_page_sizes(size, head):
+            raise _damaged(path, "the SQLite file header is overwritten", recover)
         raise InputError(f"{path}: not a lasercal session file (not an SQLite database)")
     if size < 512 or len(head) < 100:
         raise SessionDamaged(f"{path}: session file is truncated ({size} bytes)")
@@ -253,7 +271,7 @@ class Session:
         can be read into ``<name>.recovered.db`` (when ``recover``).
         """
         path = Path(path)
-        _check_header(path)
+        _check_header(path, recover)
         conn: sqlite3.Connection | None = None
         try:
             conn = _connect(path)
@@ -489,6 +507,40 @@ def _salvage(conn: sqlite3.Connection, table: str, columns: tuple[str, ...],
     return rows
 
 
+def _salvage_all(copy: Path) -> dict[str, list[tuple[Any, ...]]]:
+    """Readable rows of every session table of ``copy`` (empty lists when unreadable)."""
+    src = sqlite3.connect(copy, isolation_level=None)
+    try:
+        src.execute("PRAGMA cell_size_check = ON")
+        src.execute("PRAGMA writable_schema = ON")  # read a truncated file up to its end
+        return {t: _salvage(src, t, cols, 2000 if t != "meta" else 100)
+                for t, cols in _TABLE_COLUMNS.items()}
+    except sqlite3.DatabaseError:
+        return {t: [] for t in _TABLE_COLUMNS}
+    finally:
+        src.close()
+
+
+def _rebuild_header(copy: Path, page_size: int, tmp: Path) -> None:
+    """Write a plausible 100-byte SQLite header (``page_size``, UTF-8, WAL, no free list) over
+    ``copy``'s, taken from a fresh database; the page count is the file's."""
+    template = tmp / f"template-{page_size}.db"
+    template.unlink(missing_ok=True)
+    conn = sqlite3.connect(template, isolation_level=None)
+    try:
+        conn.execute(f"PRAGMA page_size = {page_size}")
+        conn.execute("PRAGMA journal_mode = WAL")
+        conn.execute("CREATE TABLE t(x)")
+    finally:
+        conn.close()
+    header = bytearray(template.read_bytes()[:100])
+    pages = copy.stat().st_size // page_size
+    header[28:32] = pages.to_bytes(4, "big")
+    header[92:96] = header[24:28]  # the page count above is valid
+    with copy.open("r+b") as fh:
+        fh.write(bytes(header))
+
+
 def recover_session(path: str | Path, out: str | Path) -> dict[str, int]:
     """Copy every readable row of a damaged session file into a new session file ``out``.
 
@@ -505,14 +557,15 @@ def recover_session(path: str | Path, out: str | Path) -> dict[str, int]:
         for suffix in ("-wal",):
             if Path(f"{path}{suffix}").exists():
                 shutil.copyfile(f"{path}{suffix}", f"{copy}{suffix}")
-        src = sqlite3.connect(copy, isolation_level=None)
-        try:
-            src.execute("PRAGMA cell_size_check = ON")
-            src.execute("PRAGMA writable_schema = ON")  # read a truncated file up to its end
-            got = {t: _salvage(src, t, cols, 2000 if t != "meta" else 100)
-                   for t, cols in _TABLE_COLUMNS.items()}
-        finally:
-            src.close()
+        got = _salvage_all(copy)
+        with copy.open("rb") as fh:
+            page1 = fh.read(112)
+        if not (got["poses"] or got["samples"]):  # header overwritten: try each page size
+            for page_size in _body_page_sizes(copy.stat().st_size, page1):
+                _rebuild_header(copy, page_size, Path(tmp))
+                got = _salvage_all(copy)
+                if got["poses"] or got["samples"]:
+                    break
     samples: dict[int, tuple[Any, ...]] = {}
     for row in got["samples"]:  # keep one row per pose, preferring an ok one
         if isinstance(row[0], int) and row[1] in ("ok", "skipped") and (
