@@ -188,6 +188,8 @@ def run_plane_scan(app: AppState, method: str = "ls") -> Measured:
     data = dataset_from_frame(frame, "side plate scan", need_spot=False, min_rows=3)
     cal = calibration_for_measuring(app)
     measured = fit_plane(app, data, method, plane_truth(app, cal))
+    app.notify("plane scan", f"{len(frame)} points: alpha {measured.result['alpha']:.5g}, "
+               f"beta {measured.result['beta']:.5g}", "success")
     return publish(app, dataclasses.replace(measured, draw={**measured.draw, "scan": frame}))
 
 
@@ -320,6 +322,9 @@ def run_platform_campaign(app: AppState, seed: int = 0) -> Measured:
     lines += ["", f"Scene: output axes from the sphere centre, measured (green), calibrated "
               f"model (blue), nominal model (red); angular errors drawn x"
               f"{PLATFORM_ERROR_SCALE:g}."]
+    app.notify("platform", f"calibrated: validation orientation RMS "
+               f"{before['orientation_rms_deg']:.3f} -> {after['orientation_rms_deg']:.3f} deg",
+               "success")
     return publish(app, Measured("platform", f"simulated campaign seed {seed}", result,
                                  "\n".join(lines), None, axes))
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -24,9 +25,9 @@ def sim_truth() -> dict[str, float]:
             "gain": wc.beam.gain}
 
 
-def shown_parameters(page) -> dict[str, tuple[float, float]]:
-    """``name -> (value, sigma)`` read from the results table on the Solve tab."""
-    table = page.locator("table", has_text="z_t_minus_delta")
+def shown_parameters(page, marker: str = "z_t_minus_delta") -> dict[str, tuple[float, float]]:
+    """``name -> (value, sigma)`` read from the results table holding ``marker``."""
+    table = page.locator("table", has_text=marker)
     out = {}
     for text in table.locator("tbody tr").all_inner_texts():
         cells = [c.strip() for c in re.split(r"\t|\n", text) if c.strip()]
@@ -72,6 +73,29 @@ def test_calibration_in_the_browser_matches_the_simulated_truth(
         page.get_by_role("button", name="Download session CSV").click()
     csv = Path(info.value.path()).read_text().splitlines()
     assert csv[0].startswith("# lasercal session") and len(csv) == 2 + 1 + 42
+    with page.expect_download(timeout=120_000) as info:
+        page.get_by_role("button", name="Download report").click()
+    report = zipfile.ZipFile(Path(info.value.path()))
+    assert sorted(report.namelist()) == ["calibration.json", "report.html", "report.pdf",
+                                         "residuals.csv"]
+    assert json.loads(report.read("calibration.json"))["params"]["x_t"] == pytest.approx(
+        shown["x_t"][0], abs=1e-6)
+
+    # Measure tab: arm motion, scan the aluminium side plate, compare with the workcell TOML
+    page.get_by_role("tab", name="Jog").click()
+    page.get_by_label("Arm motion").check()
+    page.get_by_role("tab", name="Measure").click()
+    page.get_by_role("button", name="Scan side plate").click()
+    page.locator("table", has_text="plane parameter").wait_for()
+    plane = shown_parameters(page, "plane parameter")
+    side = load_workcell(None).side_plate
+    for name, expected in (("alpha", side.alpha), ("beta", side.beta)):
+        value, sigma = plane[name]
+        assert sigma > 0 and abs(value - expected) <= 3 * sigma, (name, value, sigma, expected)
+    shot = tmp_path / "dashboard-measure.png"
+    page.screenshot(path=str(shot))
+    print(f"screenshot: {shot}")
+
     page.get_by_role("tab", name="Solve").click()
     shot = tmp_path / "dashboard-solved.png"
     page.screenshot(path=str(shot))
