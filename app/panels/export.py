@@ -50,8 +50,10 @@ def report_files(app: AppState, note: str = "") -> dict[str, bytes]:
     if app.data_frame is None and app.session_path is not None and app.session_path.exists():
         meta = source_meta(app.session_path, note)
     else:
+        frame = app.data_frame
         meta = {"source": str(view.dataset.source), "note": note,
-                "mode": "simulated" if app.sim else "not recorded (uploaded CSV)"}
+                "sha256": frame.attrs.get("sha256", "") if frame is not None else "",
+                "mode": "not recorded (uploaded CSV)"}
     meta.update(calibration_mode="solved",
                 calibration_source="solved in the dashboard ('Solve H')",
                 options={"model": view.calibration.model, "robust": view.robust,

@@ -193,6 +193,16 @@ def run_plane_scan(app: AppState, method: str = "ls") -> Measured:
     return publish(app, dataclasses.replace(measured, draw={**measured.draw, "scan": frame}))
 
 
+def scan_csv_bytes(app: AppState) -> bytes:
+    """The last side-plate scan in the measurement CSV format ('lasercal measure plane' reads
+    it back)."""
+    plane = app.measurements.get("plane")
+    if plane is None or "scan" not in plane.draw:
+        raise InputError("no side plate scan yet: click 'Scan side plate'")
+    head = "# lasercal side plate scan (flange pose, sensor reading; mm, deg)\n"
+    return (head + plane.draw["scan"].to_csv(index=False, float_format="%.9g")).encode()
+
+
 def plane_upload(app: AppState, name: str, content: bytes, method: str = "ls") -> str:
     from app.panels.upload import upload_dataset
 
@@ -419,6 +429,7 @@ def build(gui: Any, app: AppState) -> None:
                    lambda name, content: plane_upload(app, name, content, str(method.value)),
                    hint="x_o,y_o,z_o,theta_deg|qw..qz,d (optional x_p,y_p)",
                    mime_type=".csv,text/csv,text/plain")
+        scan_csv = gui.add_button("Download last scan CSV", icon="download")
         plane_md = gui.add_markdown("")
     with gui.add_folder("Gauges", expand_by_default=False):
         add_upload(gui, app, "Upload gauge CSV",
@@ -466,6 +477,15 @@ def build(gui: Any, app: AppState) -> None:
         fit = str(method.value)
         app.notify("plane scan", "scanning the side plate ...", "info")
         app.worker.submit("plane scan", lambda: run_plane_scan(app, fit))
+
+    @scan_csv.on_click
+    def _(event: Any) -> None:
+        try:
+            data = scan_csv_bytes(app)
+        except InputError as exc:
+            app.notify("scan CSV", str(exc), "warning")
+            return
+        event.client.send_file_download("side-plate-scan.csv", data, save_immediately=True)
 
     @platform_btn.on_click
     def _(_: Any) -> None:

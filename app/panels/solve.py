@@ -10,6 +10,7 @@ a toggle re-solves without robust screening, using exactly the poses switched on
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -147,6 +148,7 @@ def load_data_csv(app: AppState, name: str, content: bytes) -> str:
         frame["pose_index"] = index.astype(int)
     else:
         frame["pose_index"] = np.arange(len(frame))
+    frame.attrs["sha256"] = hashlib.sha256(content).hexdigest()
     app.data_frame, app.data_source = frame, shown
     app.excluded, app.flagged = set(), set()
     app.calibration = app.solve_view = None

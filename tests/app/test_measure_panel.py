@@ -6,8 +6,10 @@ simulator of tests/measure (true beam, plate, pyramid) and the platform simulato
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
+import time
 import zipfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -84,6 +86,30 @@ def test_side_plate_scan_matches_the_workcell_truth_within_3_sigma(solved: AppSt
     assert fit["rms"] < 0.02
     assert "| alpha |" in m.markdown and "sim truth" in m.markdown
     assert solved.measurements["plane"] is m and len(m.draw["scan"]) == 25
+
+
+def test_scan_csv_reads_back_and_stop_ends_a_scan(solved: AppState) -> None:
+    m = solved.measurements["plane"]
+    again = measure.fit_plane(solved, upload_dataset("scan.csv", measure.scan_csv_bytes(solved),
+                                                     need_spot=False))
+    assert again.result["alpha"] == pytest.approx(m.result["alpha"], abs=1e-3 * m.result[
+        "sigma"]["alpha"])
+    with pytest.raises(InputError, match="no side plate scan"):
+        measure.scan_csv_bytes(AppState(None, load_workcell(None)))
+    solved.sim_move_time_s = 0.05
+    solved.worker.call("reconnect", solved.connect_sim)
+    solved.armed = True
+    try:
+        future = solved.worker.submit("scan", lambda: measure.run_plane_scan(solved))
+        time.sleep(0.4)
+        solved.stop_motion()                                    # STOP: disarm + feed hold
+        with pytest.raises((MotionRefused, DriverError), match="stopped"):
+            future.result(10)
+        assert solved.measurements["plane"] is m                # nothing published
+    finally:
+        solved.armed = False
+        solved.sim_move_time_s = 0.0
+        solved.worker.call("reconnect", solved.connect_sim)
 
 
 def test_uploaded_calibration_and_plane_scan(solved: AppState) -> None:
@@ -180,6 +206,8 @@ def test_data_csv_upload_solves_like_the_session(solved: AppState) -> None:
         assert np.all(np.abs(view.calibration.values - reference.values)
                       < 0.01 * reference.sigma)
         assert "uploaded file **session.csv**" in solve.data_markdown(state)
+        files = state.worker.call("report", lambda: export.report_files(state), 120)
+        assert hashlib.sha256(content).hexdigest() in files["report.html"].decode()
         frame = state.data_frame
         for bad, match in ((b"\x00\x01\x02" * 100, "binary"),
                            (b"\xff\xfe garbage", "UTF-8"),
