@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import signal
+import socket
 import threading
 from pathlib import Path
 
@@ -51,6 +52,12 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("give either --sim or --hardware, not both")
     if not 0 <= args.port <= 65535:
         raise InputError(f"--port must be in 0..65535, got {args.port}")
+    try:  # an unknown host name is the operator's typo, not a server failure
+        if args.host.strip("[]"):  # '' binds every interface
+            socket.getaddrinfo(args.host.strip("[]"), args.port, type=socket.SOCK_STREAM)
+    except (OSError, UnicodeError) as exc:
+        raise InputError(f"--host {args.host!r}: not an address or known host name "
+                         f"({exc})") from None
     if args.session is not None:
         if args.session.is_dir():
             raise InputError(f"{args.session}: is a directory, expected a session file")
