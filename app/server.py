@@ -315,7 +315,11 @@ class GuardedServer:
                                    access_log=None, handle_signals=False)
             await runner.setup()
             site = web.TCPSite(runner, self._host, self._port, reuse_address=True)
-            await site.start()
+            try:
+                await site.start()
+            except BaseException:
+                await runner.cleanup()  # closes the upstream client session too
+                raise
             sockets = site._server.sockets if site._server else ()  # type: ignore[union-attr]
             if sockets:
                 guard.port = int(sockets[0].getsockname()[1])

@@ -194,3 +194,22 @@ def test_serve_refuses_a_file_that_is_not_a_session(tmp_path, capsys) -> None:
     bad.write_bytes(b"\x00\x01 not sqlite at all" * 100)
     assert main(["serve", "--session", str(bad)]) == 2
     assert "error: " in capsys.readouterr().err
+
+
+def test_serve_on_a_busy_port_is_one_error_line(tmp_path) -> None:
+    """A port already taken: exit 2 and exactly one ``error:`` line (no aiohttp leftovers)."""
+    import socket
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        out = subprocess.run([sys.executable, "-m", "app", "serve", "--port", str(port),
+                              "--session", str(tmp_path / "s.db")], capture_output=True,
+                             text=True, timeout=120, cwd=Path(__file__).resolve().parents[2])
+    assert out.returncode == 2
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: cannot listen"), out.stderr
