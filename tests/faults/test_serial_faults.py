@@ -109,7 +109,7 @@ def test_sensor_timeout_bounded_retries_then_device_timeout(cell: CellEmulators)
             sensor.read()
         elapsed = time.monotonic() - t0
         assert cell.keyence.received[n0:] == ["SR,00,037"] * 3   # exactly retries + 1 sends
-        assert 3 * TIMEOUT <= elapsed < 3 * TIMEOUT + 0.3
+        assert 3 * TIMEOUT <= elapsed < 3 * TIMEOUT + 1.0          # bounded: no hang
         cell.keyence.clear_faults()
         cell.keyence.inject("silent", count=2)                   # two lost replies: recovered
         assert sensor.read().ok
