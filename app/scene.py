@@ -226,8 +226,13 @@ class WorkcellScene:
         """Use beam ``T``, ``u'`` (flange frame) for the drawn beam and live spot."""
         self._beam = Beam(np.asarray(t, float), np.asarray(u, float))
 
-    def set_pose(self, position: np.ndarray, rotation: np.ndarray, d: float | None) -> None:
-        """Move flange, robot and beam to the pose; the live spot at ``O + R (T + d u')``."""
+    def set_pose(self, position: np.ndarray, rotation: np.ndarray, d: float | None,
+                 reading_known: bool = True) -> None:
+        """Move flange, robot and beam to the pose; the live spot at ``O + R (T + d u')``.
+
+        ``d`` None hides the spot (out of range); ``reading_known`` False (a pose with no reading
+        yet) moves the flange and leaves beam and spot until the next reading.
+        """
         position = np.asarray(position, dtype=float)
         rotation = np.asarray(rotation, dtype=float)
         beam = self._beam
@@ -237,10 +242,13 @@ class WorkcellScene:
         with self._scene_atomic():
             self.flange.position = position
             self.flange.wxyz = _wxyz(rotation)
-            self.beam_line.points = np.array([[head, end]], dtype=np.float32)
-            if d is None:
+            if not reading_known:
+                pass
+            elif d is None:
+                self.beam_line.points = np.array([[head, end]], dtype=np.float32)
                 self.live_spot.visible = False
             else:
+                self.beam_line.points = np.array([[head, end]], dtype=np.float32)
                 self.live_spot.position = position + rotation @ end
                 self.live_spot.visible = True
         self.pose_updates += 1

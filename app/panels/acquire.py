@@ -34,6 +34,8 @@ def run_acquisition(app: AppState, samples_per_pose: int = 3) -> Any:
     app.require_devices()
     if app.runner is not None and app.runner.state == "paused":
         runner = app.runner
+        # the devices attached now, which after a fault and a reconnect are not the old ones
+        runner.set_devices(TapRobot(app.robot, app), TapSensor(app.sensor, app), app.camera)
         runner.resume()
     else:
         session = app.ensure_session()

@@ -132,6 +132,7 @@ class AppState:
         self.solve_count = 0
         self._listeners: dict[str, list[Callable[[], None]]] = {}
         self._last_push = 0.0
+        self._flush_pending = False
         self._last_pose_poll = 0.0
         self._publish_lock = threading.Lock()
         self.scene = WorkcellScene(server, workcell) if server is not None else None
@@ -313,20 +314,49 @@ class AppState:
         self.publish(pose, self.sensor.read())
 
     def publish(self, pose: FlangePose | None, reading: SensorReading | None) -> None:
-        """Record the latest pose/reading and redraw flange, beam and live spot (throttled)."""
+        """Record the latest pose/reading and redraw flange, beam and live spot.
+
+        At most :data:`LIVE_MAX_HZ` redraws per second; a sample that arrives sooner is drawn
+        by a deferred flush, so the newest pose and reading always reach the clients (no
+        reading is silently dropped during a burst, e.g. the samples after each move of an
+        acquisition).
+        """
         with self._publish_lock:
             prev = self.latest
             if pose is None:
                 if prev is None:
                     return
                 pose = prev.pose
-            self.latest = LiveSample(pose, reading, time.monotonic())
             now = time.monotonic()
-            if self.scene is None or now - self._last_push < 1.0 / LIVE_MAX_HZ:
+            self.latest = LiveSample(pose, reading, now)
+            if self.scene is None:
+                return
+            wait = self._last_push + 1.0 / LIVE_MAX_HZ - now
+            if wait > 0:
+                if not self._flush_pending:
+                    self._flush_pending = True
+                    timer = threading.Timer(wait, self._flush)
+                    timer.daemon = True
+                    timer.start()
                 return
             self._last_push = now
+            sample = self.latest
+        self._draw(sample)
+
+    def _flush(self) -> None:
+        with self._publish_lock:
+            self._flush_pending = False
+            self._last_push = time.monotonic()
+            sample = self.latest
+        if sample is not None:
+            self._draw(sample)
+
+    def _draw(self, sample: LiveSample) -> None:
+        reading = sample.reading
         d = reading.value if reading is not None and reading.ok else None
-        self.scene.set_pose(np.array([pose.x, pose.y, pose.z]), pose_rotation(pose), d)
+        pose = sample.pose
+        self.scene.set_pose(np.array([pose.x, pose.y, pose.z]), pose_rotation(pose), d,
+                            reading_known=reading is not None)
         self.changed("live")
 
     # ---- session ------------------------------------------------------------------------------

@@ -53,11 +53,6 @@ def test_unplugged_sensor_pauses_with_a_notification(hardware) -> None:
     assert state.session.stored_indices() == set(range(20))
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "dashboard defect (app/panels/acquire.py/state.py, not owned here): after a device "
-    "fault the operator reconnects (AppState.attach/connect_hardware), but Resume continues "
-    "the paused Runner with the old, closed device wrappers (no Runner.set_devices), so the "
-    "run pauses again with 'port ... is closed'. Remove this mark once fixed."))
 def test_reconnect_then_resume_completes_the_session(hardware) -> None:
     state, emu = hardware
     _attach(state, emu, emu.keyence.path)
