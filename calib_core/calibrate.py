@@ -257,11 +257,8 @@ def _fit(data: Dataset, model: str, noise: NoiseModel, robust: bool
         for _ in range(5):
             idx = np.flatnonzero(inliers)
             sub = poses.subset(idx)
-            pre = maximum_likelihood_fit(sub, d[idx], spot[idx], reg[idx], obs[idx], h0, model,
-                                         noise, estimate_variance=False, factors=factors,
-                                         max_iterations=2)
-            factors = robust_variance_factors(data, pre.h, model, noise, inliers)
-            pre = maximum_likelihood_fit(sub, d[idx], spot[idx], reg[idx], obs[idx], pre.h,
+            factors = robust_variance_factors(data, h0, model, noise, inliers)
+            pre = maximum_likelihood_fit(sub, d[idx], spot[idx], reg[idx], obs[idx], h0,
                                          model, noise, loss="soft_l1", f_scale=ROBUST_F_SCALE,
                                          estimate_variance=False, factors=factors,
                                          max_iterations=1)
