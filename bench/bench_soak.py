@@ -63,8 +63,11 @@ async def _client(url: str, origin: str, seconds: float) -> dict[str, float]:
     return {name: n / (seconds - 0.5) for name, n in counts.items()}
 
 
-def soak(seconds: float, clients: int = 10) -> dict[str, object]:
-    """Run the soak; returns the figures (rates Hz, RSS MB, poses and sessions stored)."""
+def soak(seconds: float, clients: int = 10, move_time: float | None = None) -> dict[str, object]:
+    """Run the soak; returns the figures (rates Hz, RSS MB, poses and sessions stored).
+
+    ``move_time`` (s) overrides the simulated robot's move duration (None: the dashboard's).
+    """
     from app.panels import acquire, build_dashboard
     from app.server import GuardedServer
     from drivers.sim.workcell import load_workcell
@@ -106,6 +109,9 @@ def soak(seconds: float, clients: int = 10) -> dict[str, object]:
         deadline = time.monotonic() + 30
         while not app.connected and time.monotonic() < deadline:
             time.sleep(0.05)
+        if move_time is not None:
+            app.sim_move_time_s = move_time
+            app.worker.call("reconnect", app.connect_sim, 30)
         threads = [threading.Thread(target=acquisitions, daemon=True),
                    threading.Thread(target=sampler, daemon=True)]
         rss.append((0.0, rss_mb()))
@@ -131,7 +137,7 @@ def soak(seconds: float, clients: int = 10) -> dict[str, object]:
     spot = [c["/cell/live_spot"] for c in per_client]
     flange = [c["/cell/flange"] for c in per_client]
     return {
-        "seconds": seconds, "clients": clients,
+        "seconds": seconds, "clients": clients, "move_time_s": move_time,
         "operator_spot_hz": spot[0], "min_client_spot_hz": min(spot),
         "median_client_spot_hz": statistics.median(spot),
         "operator_flange_hz": flange[0], "min_client_flange_hz": min(flange),
@@ -149,14 +155,17 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=1800.0,
                         help="soak duration (default 1800 s = 30 min)")
     parser.add_argument("--clients", type=int, default=10, help="websocket clients (default 10)")
+    parser.add_argument("--move-time", type=float, default=None, metavar="S",
+                        help="simulated move duration (default: the dashboard's, 0.05 s)")
     parser.add_argument("--json", action="store_true", help="print the figures as JSON")
     args = parser.parse_args()
-    figures = soak(args.seconds, args.clients)
+    figures = soak(args.seconds, args.clients, args.move_time)
     if args.json:
         print(json.dumps(figures))
         return
     f = figures
-    print(f"soak {f['seconds']:.0f} s, {f['clients']} clients, live acquisition "
+    print(f"soak {f['seconds']:.0f} s, {f['clients']} clients, live acquisition, move time "
+          f"{f['move_time_s'] if f['move_time_s'] is not None else 'default'} "
           f"({f['acquisitions_finished']} x 42-pose runs, {f['poses_stored']} poses stored):")
     print(f"  live spot position updates: operator {f['operator_spot_hz']:.1f} Hz, min client "
           f"{f['min_client_spot_hz']:.1f} Hz, median {f['median_client_spot_hz']:.1f} Hz")
