@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 import json
 import zipfile
+from collections.abc import Callable
 from typing import Any
 
 from app.panels.state import AppState
@@ -76,6 +77,17 @@ def report_download(files: dict[str, bytes], fmt: str, stem: str) -> tuple[str, 
     return f"{stem}.report.zip", buf.getvalue()
 
 
+def offer_download(app: AppState, client: Any, title: str, filename: str,
+                   build: Callable[[], bytes]) -> None:
+    """Send ``build()`` to ``client`` as ``filename``; a refusal becomes a warning notification."""
+    try:
+        data = build()
+    except InputError as exc:
+        app.notify(title, str(exc), "warning")
+        return
+    client.send_file_download(filename, data, save_immediately=True)
+
+
 def build(gui: Any, app: AppState) -> None:
     csv_btn = gui.add_button("Download session CSV", icon="download")
     json_btn = gui.add_button("Download solve JSON", icon="download")
@@ -92,21 +104,12 @@ def build(gui: Any, app: AppState) -> None:
 
     @csv_btn.on_click
     def _(event: Any) -> None:
-        try:
-            data = session_csv(app)
-        except InputError as exc:
-            app.notify("export", str(exc), "warning")
-            return
-        event.client.send_file_download(f"{stem()}.csv", data, save_immediately=True)
+        offer_download(app, event.client, "export", f"{stem()}.csv", lambda: session_csv(app))
 
     @json_btn.on_click
     def _(event: Any) -> None:
-        try:
-            data = solve_json(app)
-        except InputError as exc:
-            app.notify("export", str(exc), "warning")
-            return
-        event.client.send_file_download(f"{stem()}.calib.json", data, save_immediately=True)
+        offer_download(app, event.client, "export", f"{stem()}.calib.json",
+                       lambda: solve_json(app))
 
     @report_btn.on_click
     def _(event: Any) -> None:

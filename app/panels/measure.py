@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from app.panels.export import offer_download
 from app.panels.state import AppState
 from calib_core.errors import InputError
 from drivers.base import FlangePose, MotionRefused
@@ -480,12 +481,8 @@ def build(gui: Any, app: AppState) -> None:
 
     @scan_csv.on_click
     def _(event: Any) -> None:
-        try:
-            data = scan_csv_bytes(app)
-        except InputError as exc:
-            app.notify("scan CSV", str(exc), "warning")
-            return
-        event.client.send_file_download("side-plate-scan.csv", data, save_immediately=True)
+        offer_download(app, event.client, "scan CSV", "side-plate-scan.csv",
+                       lambda: scan_csv_bytes(app))
 
     @platform_btn.on_click
     def _(_: Any) -> None:
