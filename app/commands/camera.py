@@ -213,6 +213,8 @@ def _render(args: argparse.Namespace) -> int:
     from drivers.sim.workcell import load_workcell
     from drivers.sim.world import SimWorld
 
+    if not cv2.haveImageWriter(args.out):
+        raise InputError(f"{args.out}: OpenCV cannot write this image format (use .png)")
     world = SimWorld(load_workcell(args.workcell), seed=args.seed)
     cam = SimCamera(world, seed=args.seed)
     if args.chessboard:

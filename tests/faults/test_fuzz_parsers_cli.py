@@ -8,8 +8,8 @@ CLI: for every leaf sub-command of ``lasercal`` (found by walking the argparse t
 lists that each carry at least one bad value (non-numbers, NaN/inf, unknown choices, missing,
 empty, binary or directory paths, outputs under a missing directory) run in-process through
 ``app.cli.main`` in an empty working directory: exit 2, exactly one ``error:`` line, nothing on
-stdout, no file created, changed or removed. (``camera render --out`` only gets image names:
-an unknown extension currently ends in exit 1, see the report.)
+stdout, no file created, changed or removed (``camera render --out`` also gets an image format
+OpenCV cannot write).
 """
 
 from __future__ import annotations
@@ -197,7 +197,9 @@ def _poisons(action: argparse.Action, leaf: tuple[str, ...]) -> tuple[str, ...]:
     if action.type is float:
         return ("nan", "inf", "-inf", "abc", "", "1e999")
     if set(action.option_strings) & OUTPUTS:
-        return ("{d}/junk.bin", "{d}/junk.bin/x") if leaf in DIR_OUTPUTS else OUTPUT_POISONS
+        if leaf in DIR_OUTPUTS:
+            return ("{d}/junk.bin", "{d}/junk.bin/x")
+        return (*OUTPUT_POISONS, "{d}/x.txt") if leaf == ("camera", "render") else OUTPUT_POISONS
     return INPUT_POISONS
 
 
