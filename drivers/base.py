@@ -6,6 +6,7 @@ operator message; it never returns a made-up number.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Protocol, runtime_checkable
@@ -13,6 +14,9 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from calib_core.errors import LasercalError
+
+#: Interval (s) at which a moving robot reports its pose to an ``on_motion`` callback.
+MOTION_REPORT_S = 1.0 / 30.0
 
 
 class DriverError(LasercalError):
@@ -51,6 +55,9 @@ class FlangePose:
 
     def as_array(self) -> np.ndarray:
         return np.array([self.x, self.y, self.z, self.theta_deg])
+
+
+MotionCallback = Callable[[FlangePose], None]
 
 
 @dataclass(frozen=True)
@@ -123,8 +130,13 @@ class Robot(Protocol):
 
     limits: SoftLimits
 
-    def move_to(self, target: FlangePose) -> FlangePose:
-        """Check the soft limits, move, wait for the end of motion, return the pose read back."""
+    def move_to(self, target: FlangePose, on_motion: MotionCallback | None = None
+                ) -> FlangePose:
+        """Check the soft limits, move, wait for the end of motion, return the pose read back.
+
+        ``on_motion`` (optional) is called, in the caller's thread, with the poses the robot
+        passes through while it moves (about every :data:`MOTION_REPORT_S`), for a live view.
+        """
         ...
 
     def read_pose(self) -> FlangePose: ...

@@ -15,7 +15,15 @@ import threading
 import time
 from dataclasses import dataclass
 
-from drivers.base import DeviceTimeout, DriverError, FlangePose, MotionRefused, SoftLimits
+from drivers.base import (
+    MOTION_REPORT_S,
+    DeviceTimeout,
+    DriverError,
+    FlangePose,
+    MotionCallback,
+    MotionRefused,
+    SoftLimits,
+)
 from drivers.serial_port import SerialLink
 
 #: GRBL 1.1 ``error:N`` meanings (the common ones).
@@ -239,10 +247,13 @@ class GrblRobot:
         self.limits.check(target)
         return target
 
-    def move_to(self, target: FlangePose) -> FlangePose:
+    def move_to(self, target: FlangePose, on_motion: MotionCallback | None = None
+                ) -> FlangePose:
         """Check limits, move, wait for the end of motion, return the pose read back.
 
-        A quaternion target must be a rotation about z; theta = 2 atan2(qz, qw).
+        A quaternion target must be a rotation about z; theta = 2 atan2(qz, qw). With
+        ``on_motion`` the controller is asked for its status (``?``) every
+        :data:`MOTION_REPORT_S` during the move and each reported pose goes to the callback.
         """
         target = self._check(target)
         x, y, z, a = target.x, target.y, target.z, target.theta_deg
@@ -258,23 +269,26 @@ class GrblRobot:
             self._command(f"G90 G1 X{x:.3f} Y{y:.3f} Z{z:.3f} A{a:.3f} F{self.feed:g}")
             dist = math.dist(begin.as_array(), target.as_array())
             wait = self.move_timeout or 10.0 + 3.0 * dist / self.feed * 60.0
-            self._wait_motion(target, wait)
+            self._wait_motion(target, wait, on_motion)
             pose = self._settle(target)
         return pose
 
-    def _wait_motion(self, target: FlangePose, wait: float) -> None:
+    def _wait_motion(self, target: FlangePose, wait: float,
+                     on_motion: MotionCallback | None = None) -> None:
         """Send ``G4 P0`` and wait ``wait`` s at most for its ``ok`` (end of motion).
 
-        Whenever no line arrives for one reply timeout, ``?`` probes the controller: a report
-        of Idle at the target means the ``ok`` was lost and the motion is over.
+        Whenever no line arrives for one reply timeout (for :data:`MOTION_REPORT_S` with
+        ``on_motion``), ``?`` probes the controller: a report of Idle at the target means the
+        ``ok`` was lost and the motion is over; any other report goes to ``on_motion``.
         """
         link = self._link
         link.discard_input()
         link.send_line("G4 P0")
         deadline = time.monotonic() + wait
+        poll = link.timeout if on_motion is None else min(link.timeout, MOTION_REPORT_S)
         while True:
             remaining = deadline - time.monotonic()
-            line = link.read_line(max(0.0, min(link.timeout, remaining)), self._stop.is_set)
+            line = link.read_line(max(0.0, min(poll, remaining)), self._stop.is_set)
             if self._stop.is_set():
                 raise MotionStopped(f"move stopped by operator (feed hold sent to {self.port}); "
                                     "the next move clears the controller's queue")
@@ -303,6 +317,8 @@ class GrblRobot:
                 if (status.base_state == "Idle" and
                         float(abs(pose.as_array() - target.as_array()).max()) <= self.tolerance):
                     return  # the ok was lost; the motion is over
+                if on_motion is not None:
+                    on_motion(pose)
 
     def jog(self, dx: float = 0.0, dy: float = 0.0, dz: float = 0.0,
             dtheta: float = 0.0) -> FlangePose:

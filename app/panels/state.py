@@ -58,8 +58,8 @@ class TapRobot:
         self._robot, self._app = robot, app
         self.limits = robot.limits
 
-    def move_to(self, target: FlangePose) -> FlangePose:
-        pose = self._robot.move_to(target)
+    def move_to(self, target: FlangePose, on_motion: Any = None) -> FlangePose:
+        pose = self._robot.move_to(target, on_motion=self._app.motion_update)
         self._app.publish(pose, None)
         return pose
 
@@ -286,7 +286,7 @@ class AppState:
         self.require_motion()
         current = self.robot.read_pose()
         self.robot.limits.check(target, current)
-        pose = self.robot.move_to(target)
+        pose = self.robot.move_to(target, on_motion=self.motion_update)
         self.publish(pose, self.sensor.read())
         return pose
 
@@ -312,6 +312,18 @@ class AppState:
         if self.sim or now - self._last_pose_poll >= HARDWARE_POSE_POLL_S or self.latest is None:
             pose, self._last_pose_poll = self.robot.read_pose(), now
         self.publish(pose, self.sensor.read())
+
+    def motion_update(self, pose: FlangePose) -> None:
+        """A pose the robot passes through while it moves (worker thread, inside ``move_to``).
+
+        On the simulated cell the sensor is read there too, so the live spot follows the
+        motion; a hardware sensor is left to the acquisition (no extra traffic on its line).
+        """
+        reading = None
+        if self.sim and self.sensor is not None:
+            with contextlib.suppress(DriverError):
+                reading = self.sensor.read()
+        self.publish(pose, reading)
 
     def publish(self, pose: FlangePose | None, reading: SensorReading | None) -> None:
         """Record the latest pose/reading and redraw flange, beam and live spot.

@@ -10,8 +10,10 @@ from collections.abc import Iterable
 import numpy as np
 
 from drivers.base import (
+    MOTION_REPORT_S,
     DriverError,
     FlangePose,
+    MotionCallback,
     SensorReading,
     SoftLimits,
     SpotMeasurement,
@@ -52,21 +54,33 @@ class SimRobot:
         if self._closed:
             raise DriverError("simulated robot is closed")
 
-    def move_to(self, target: FlangePose) -> FlangePose:
-        """Check limits against the current pose, move (taking ``move_time_s``), report."""
+    def move_to(self, target: FlangePose, on_motion: MotionCallback | None = None
+                ) -> FlangePose:
+        """Check limits against the current pose, move (taking ``move_time_s``), report.
+
+        With ``on_motion`` the flange passes through the straight-line poses of the move
+        (every :data:`MOTION_REPORT_S`), each reported to the callback.
+        """
         self._check_open()
         current = self.world.true_pose
         self.limits.check(target, current)
         self._stop.clear()
+        a, b = current.as_array(), target.as_array()
+
+        def between(f: float) -> FlangePose:
+            x, y, z, th = a + f * (b - a)
+            return FlangePose(x, y, z, th, target.quaternion if f >= 0.5 else current.quaternion)
         if self.move_time_s > 0:
             start = time.monotonic()
-            if self._stop.wait(self.move_time_s):
-                f = min(1.0, (time.monotonic() - start) / self.move_time_s)
-                a, b = current.as_array(), target.as_array()
-                x, y, z, th = a + f * (b - a)
-                self.world.move(FlangePose(x, y, z, th, target.quaternion if f >= 0.5
-                                           else current.quaternion))
-                raise DriverError("motion stopped before reaching the target")
+            step = MOTION_REPORT_S if on_motion is not None else self.move_time_s
+            while (left := start + self.move_time_s - time.monotonic()) > 0:
+                if self._stop.wait(min(step, left)):
+                    self.world.move(between(min(1.0, (time.monotonic() - start)
+                                                / self.move_time_s)))
+                    raise DriverError("motion stopped before reaching the target")
+                if on_motion is not None and time.monotonic() - start < self.move_time_s:
+                    self.world.move(between((time.monotonic() - start) / self.move_time_s))
+                    on_motion(self.world.reported_pose())
         self.world.move(target)
         return self.world.reported_pose()
 

@@ -254,3 +254,16 @@ def test_any_junk_gives_the_target_or_a_driver_error(grbl, junk, kind, match):
             return
     if b"<" not in junk and b"ok" not in junk and b"ALARM" not in junk:
         assert _close(pose, target)
+
+
+def test_on_motion_reports_the_poses_passed_through(grbl, robot):
+    """With ``on_motion`` the driver polls ``?`` during the move: a 0.3 s move from x=0 to
+    x=10 reports intermediate poses at increasing x, then ends at the target."""
+    grbl.move_time = 0.3
+    seen: list[FlangePose] = []
+    pose = robot.move_to(FlangePose(10.0, 0.0, 20.0, 0.0), on_motion=seen.append)
+    xs = [p.x for p in seen]
+    assert len(xs) >= 3, xs  # ~9 at 1/30 s; fewer only on a stalled machine
+    assert all(0.0 <= x <= 10.0 for x in xs) and xs == sorted(xs)
+    assert any(0.5 < x < 9.5 for x in xs)  # truly between start and target
+    assert pose.x == pytest.approx(10.0, abs=1e-3)

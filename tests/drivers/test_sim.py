@@ -341,3 +341,17 @@ def test_measuring_window_is_physical_after_zeroing():
     assert reading.ok and reading.value == pytest.approx(10.5, abs=0.2)
     robot.move_to(FlangePose(0.0, 0.0, 31.0, 0.0))
     assert sensor.read().status is ReadingStatus.OUT_OF_RANGE
+
+
+def test_sim_robot_reports_the_poses_of_a_move() -> None:
+    """``on_motion``: a 0.2 s move passes through straight-line poses (x rising from the start
+    towards the target, about every 1/30 s), then the move ends at the target."""
+    world = SimWorld(load_workcell(None), seed=0)
+    robot = SimRobot(world, move_time_s=0.2)
+    robot.move_to(FlangePose(-2.0, 0.0, 20.0, 0.0))
+    seen: list[FlangePose] = []
+    end = robot.move_to(FlangePose(2.0, 0.0, 20.0, 0.0), on_motion=seen.append)
+    xs = [p.x for p in seen]
+    assert 2 <= len(xs) <= 8, xs  # ~5 at 1/30 s; fewer only on a stalled machine
+    assert xs == sorted(xs) and xs[0] > -2.05 and xs[-1] < 2.0
+    assert world.true_pose.x == 2.0 and end.x == pytest.approx(2.0, abs=0.02)

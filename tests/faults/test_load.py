@@ -1,12 +1,12 @@
 """Load: 10 websocket clients on the dashboard during a live acquisition, 20 s bounded soak.
 
-Runs ``bench/bench_soak.py --seconds 20 --clients 10 --move-time 0.02 --json`` in its own
-process (so the memory figure is the server's alone; the 30-minute soak is the same command
-with ``--seconds 1800``). The simulated moves take 20 ms, so new readings arrive faster than
-the 20 Hz goal and the measured rate is what the dashboard delivers, not the pose rate (with
-the default 50 ms moves the live spot follows the 17 poses/s). Asserted: the acquisitions keep
-running and finish, the resident memory grows by less than :data:`RSS_GROWTH_MB` after the
-warm-up, and every client's live view (the operator's first) keeps at least 20 updates/s.
+Runs ``bench/bench_soak.py --seconds 20 --clients 10 --json`` in its own process (so the
+memory figure is the server's alone; the 30-minute soak is the same command with
+``--seconds 1800``), with the dashboard's own 50 ms simulated moves: the live view is fed by
+the robot's poses during each move (``on_motion``) as well as by the acquisition's readings,
+so it does not fall to the pose rate (17 poses/s). Asserted: the acquisitions keep running
+and finish, the resident memory grows by less than :data:`RSS_GROWTH_MB` after the warm-up,
+and every client's live view (the operator's first) keeps at least 20 updates/s.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ LIVE_HZ = 20.0
 @pytest.fixture(scope="module")
 def figures() -> dict:
     r = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_soak.py"), "--seconds",
-                        str(SECONDS), "--clients", "10", "--move-time", "0.02", "--json"], cwd=ROOT,
+                        str(SECONDS), "--clients", "10", "--json"], cwd=ROOT,
                        capture_output=True, text=True, timeout=SECONDS + 90)
     assert r.returncode == 0, r.stderr[-2000:]
     out = json.loads(r.stdout.strip().splitlines()[-1])
@@ -51,3 +51,4 @@ def test_operator_live_view_keeps_20_hz_during_acquisition(figures: dict) -> Non
     assert figures["operator_spot_hz"] >= LIVE_HZ
     assert figures["operator_flange_hz"] >= LIVE_HZ
     assert figures["min_client_spot_hz"] >= LIVE_HZ                  # no client starved
+    assert figures["min_client_flange_hz"] >= LIVE_HZ
