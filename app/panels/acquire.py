@@ -135,10 +135,7 @@ def build(gui: Any, app: AppState) -> None:
 
     @start.on_click
     def _(event: Any) -> None:
-        try:
-            app.check_control(event.client_id)
-        except Exception as exc:
-            app.notify("acquisition", str(exc), "warning")
+        if not app.has_control(event.client_id, "acquisition"):
             return
         if app.runner is not None and app.runner.state == "running":
             app.notify("acquisition", "already running", "info")
@@ -165,10 +162,7 @@ def build(gui: Any, app: AppState) -> None:
             runner.abort()
             app.notify("acquisition", "aborted; stored samples are kept", "warning")
         elif action == "Resume":
-            try:
-                app.check_control(event.client_id)
-            except Exception as exc:
-                app.notify("acquisition", str(exc), "warning")
+            if not app.has_control(event.client_id, "acquisition"):
                 return
             if runner.state != "paused":
                 app.notify("acquisition", f"nothing to resume (state {runner.state})", "info")

@@ -79,13 +79,10 @@ def build(gui: Any, app: AppState) -> None:
 
     @arm.on_update
     def _(event: Any) -> None:
-        if arm.value and event.client_id is not None:
-            try:
-                app.check_control(event.client_id)
-            except Exception as exc:
-                arm.value = False
-                app.notify("arm motion", str(exc), "warning")
-                return
+        if (arm.value and event.client_id is not None
+                and not app.has_control(event.client_id, "arm motion")):
+            arm.value = False
+            return
         app.armed = bool(arm.value)
 
     def refresh_arm() -> None:

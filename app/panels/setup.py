@@ -83,10 +83,7 @@ def build(gui: Any, app: AppState) -> None:
 
     @connect.on_click
     def _(event: Any) -> None:
-        try:
-            app.check_control(event.client_id)
-        except Exception as exc:
-            app.notify("connect", str(exc), "warning")
+        if not app.has_control(event.client_id, "connect"):
             return
         if mode.value == "simulated":
             app.sim_camera = sim_cam.value

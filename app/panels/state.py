@@ -258,6 +258,15 @@ class AppState:
             raise MotionRefused(f"tab #{self.controller} holds control of the cell; use "
                                 "'Take control' to hand it over")
 
+    def has_control(self, client_id: int | None, title: str) -> bool:
+        """:meth:`check_control` for a GUI callback: a refusal becomes a warning notification."""
+        try:
+            self.check_control(client_id)
+        except MotionRefused as exc:
+            self.notify(title, str(exc), "warning")
+            return False
+        return True
+
     def take_control(self, client_id: int) -> None:
         """Explicit hand-over: ``client_id`` becomes the controlling tab."""
         previous, self.controller = self.controller, client_id
